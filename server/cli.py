@@ -1,0 +1,157 @@
+"""The ``burrforce`` command."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from . import __version__
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value < 0.0:
+        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
+    return value
+
+
+def _angles(text: str) -> list[float]:
+    try:
+        values = [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"angles must be comma-separated numbers in degrees, got {text!r}") from None
+    if not values or any(not 0.0 < v <= 90.0 for v in values):
+        raise argparse.ArgumentTypeError(f"each angle must be in (0, 90] degrees, got {text!r}")
+    return values
+
+
+def _elements(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 8 <= value <= 1_000_000:
+        raise argparse.ArgumentTypeError(f"element count must be in 8..1000000, got {value}")
+    return value
+
+
+def _add_experiment(sub: argparse._SubParsersAction) -> None:
+    from .model.burr import DEFAULT_N_THETA
+    from .model.cases import THESIS_DEPTH_MM, THESIS_FEED_MM_S, THESIS_RPM
+    from .model.params import THESIS_K, THESIS_US_N_MM2
+
+    p = sub.add_parser(
+        "experiment",
+        help="the thesis's Table 1 (3 orientations × 3 angles) through the model",
+        description="Run the thesis's cutting experiment through the force model: bone in "
+                    "z < 0, burr centre at z = R − depth, tool axis (−cos α, 0, sin α), feed "
+                    "along x (parallel), y (perpendicular) or (x+y)/√2 (diagonal).",
+    )
+    p.add_argument("--radius-mm", type=_positive_float, default=2.0,
+                   help="burr radius R in mm (a '4 mm burr' is a diameter: R = 2). Default 2")
+    p.add_argument("--depth-mm", type=_positive_float, default=THESIS_DEPTH_MM,
+                   help=f"depth of cut h in mm. Default {THESIS_DEPTH_MM:g}")
+    p.add_argument("--feed-mm-s", type=_positive_float, default=THESIS_FEED_MM_S,
+                   help=f"feed speed in mm/s. Default {THESIS_FEED_MM_S:g}")
+    p.add_argument("--rpm", type=_positive_float, default=THESIS_RPM,
+                   help=f"spindle speed in rpm. Default {THESIS_RPM:g}")
+    p.add_argument("--us", type=_non_negative_float, default=THESIS_US_N_MM2,
+                   help=f"specific cutting energy Us in N/mm². Default {THESIS_US_N_MM2:g}")
+    p.add_argument("--k", type=_non_negative_float, default=THESIS_K,
+                   help=f"normal/tangential force ratio K. Default {THESIS_K:g}")
+    p.add_argument("--spin", choices=("forward", "reverse"), default="forward",
+                   help="forward = clockwise seen from the handle. Default forward")
+    p.add_argument("--min-cutting-rpm", type=_positive_float, default=5000.0,
+                   help="below this spindle speed the burr touches instead of cutting. "
+                        "Default 5000")
+    p.add_argument("--angles", type=_angles, default=[30.0, 60.0, 90.0],
+                   help="cutting angles in degrees, comma-separated. Default 30,60,90")
+    p.add_argument("--elements", type=_elements, default=2 * DEFAULT_N_THETA ** 2,
+                   help="burr surface elements (latitude × longitude, rounded to "
+                        f"n × 2n). Default {2 * DEFAULT_N_THETA ** 2}")
+    p.add_argument("--json", action="store_true",
+                   help="print a JSON list of rows instead of the table")
+    p.add_argument("--plot", type=Path, metavar="PATH",
+                   help="also write a PNG of the components against angle (needs matplotlib)")
+    p.set_defaults(func=_run_experiment)
+
+
+def _run_experiment(args: argparse.Namespace) -> int:
+    from .experiment import format_table, plot_experiment, rows_to_json, run_experiment
+    from .model import BurrGrid, CuttingModel, CuttingParams
+
+    if args.depth_mm > 2.0 * args.radius_mm:
+        raise ValueError(f"--depth-mm {args.depth_mm} exceeds the burr diameter "
+                         f"{2.0 * args.radius_mm} mm")
+    params = CuttingParams(us_n_mm2=args.us, k=args.k, radius_mm=args.radius_mm,
+                           spin=args.spin, min_cutting_rpm=args.min_cutting_rpm)
+    grid = BurrGrid.from_element_count(args.elements)
+    model = CuttingModel(params, n_theta=grid.n_theta, n_phi=grid.n_phi)
+    if not model.is_cutting_speed(args.rpm):
+        print(f"warning: {args.rpm:g} rpm is below the minimum cutting speed "
+              f"{args.min_cutting_rpm:g} rpm: the burr touches but does not cut, so every "
+              "force is zero", file=sys.stderr)
+    rows = run_experiment(model, args.angles, args.depth_mm, args.feed_mm_s, args.rpm)
+    if args.json:
+        print(rows_to_json(rows))
+    else:
+        print(f"burr R = {args.radius_mm:g} mm, depth {args.depth_mm:g} mm, feed "
+              f"{args.feed_mm_s:g} mm/s, {args.rpm:g} rpm {args.spin}, Us = {args.us:g} N/mm², "
+              f"K = {args.k:g}, {grid.n_elements} elements")
+        print(format_table(rows))
+    if args.plot is not None:
+        path = plot_experiment(model, rows, args.plot, args.depth_mm, args.feed_mm_s, args.rpm)
+        print(f"plot written to {path}", file=sys.stderr)
+    return 0
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks that write results files")
+    bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    from .bench import model as bench_model
+
+    bench_model.add_parser(bench_sub)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="burrforce",
+        description="Haptic force server for virtual-reality bone burring.",
+    )
+    parser.add_argument("--version", action="version", version=f"burrforce {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_experiment(sub)
+    _add_bench(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"burrforce {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

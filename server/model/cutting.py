@@ -1,0 +1,195 @@
+"""The resistive cutting force of a spinning spherical burr (model.md, thesis eqs. 2–7)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .burr import DEFAULT_N_THETA, DEFAULT_REFINE, BurrGrid
+from .kernels import (
+    OUT_CONTACT_AREA,
+    OUT_COUNT,
+    OUT_CUT_AREA,
+    OUT_FORCE,
+    OUT_POWER,
+    OUT_SPEED_AREA,
+    OUT_SURFACE_NORMAL,
+    OUT_TORQUE,
+    OUT_VOLUME_RATE,
+    new_buffer,
+)
+from .params import CuttingParams
+from .workpiece import FlatWorkpiece, Workpiece
+
+RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+
+
+@dataclass(frozen=True)
+class CuttingResult:
+    """One evaluation of the model. Vectors are float64 arrays of shape (3,), world frame.
+
+    Attributes:
+        force_N: force of the bone ON the burr (what the hand feels), N.
+        feed_N, lateral_N, normal_N: F·f̂, F·l̂, F·ŝ with f̂ the feed direction, ŝ the outward
+            bone-surface normal at the cut and l̂ = ŝ×f̂ normalised (left of the feed seen from
+            outside the bone). Zero without feed. They are orthogonal when the feed lies in the
+            surface; for a plunging feed they are the thesis's projections, not a basis.
+        torque_Nmm: reaction torque on the burr about its centre, N·mm. Its component along the
+            tool axis is the spindle load torque.
+        power_W: spindle power spent cutting, W (= Us × removed_mm3_s, exactly).
+        removed_mm3_s: removed-volume rate, mm³/s.
+        cutting_elements: number of burr elements that cut.
+        mean_speed_m_s: area-weighted mean surface speed |v_t| over the cutting zone, m/s
+            (0 when nothing cuts).
+        cutting: the spindle turns fast enough to cut and some element cuts.
+        contact: some part of the burr lies in bone (whether or not it cuts).
+        surface_normal: ŝ used for the components.
+    """
+
+    force_N: np.ndarray
+    feed_N: float
+    lateral_N: float
+    normal_N: float
+    torque_Nmm: np.ndarray
+    power_W: float
+    removed_mm3_s: float
+    cutting_elements: int
+    mean_speed_m_s: float
+    cutting: bool
+    contact: bool
+    surface_normal: np.ndarray
+
+    @property
+    def force_magnitude_N(self) -> float:
+        return float(np.linalg.norm(self.force_N))
+
+
+class CuttingModel:
+    """Evaluates the cutting force of one burr against one workpiece.
+
+    Owns the burr discretization (tables built once per resolution; they are unit-sphere tables,
+    so changing R does not rebuild them) and preallocated buffers, so an evaluation allocates
+    only its result.
+
+    Args:
+        params: model parameters (Us, K, R, spin, minimum cutting rpm).
+        workpiece: the bone. Default the thesis's flat workpiece, bone in z < 0.
+        n_theta, n_phi: burr resolution (latitude bands, longitude sectors; n_phi = 2·n_theta
+            by default).
+        refine: elements the bone surface crosses are split refine×refine.
+    """
+
+    def __init__(
+        self,
+        params: CuttingParams | None = None,
+        workpiece: Workpiece | None = None,
+        n_theta: int = DEFAULT_N_THETA,
+        n_phi: int | None = None,
+        refine: int = DEFAULT_REFINE,
+    ) -> None:
+        self.params = params if params is not None else CuttingParams()
+        self.workpiece = workpiece if workpiece is not None else FlatWorkpiece()
+        self.grid = BurrGrid.build(n_theta, n_phi, refine)
+        self._scratch = new_buffer()
+        self._out = new_buffer()
+
+    def set_resolution(self, n_theta: int, n_phi: int | None = None,
+                       refine: int = DEFAULT_REFINE) -> None:
+        """Rebuild the burr tables only if the resolution changed."""
+        wanted_phi = 2 * n_theta if n_phi is None else n_phi
+        if (n_theta, wanted_phi, refine) != self.grid.key:
+            self.grid = BurrGrid.build(n_theta, wanted_phi, refine)
+
+    def omega_rad_s(self, rpm: float) -> float:
+        """Signed angular speed along the tool axis: Ω = omega·a. The sign of rpm reverses spin."""
+        return self.params.spin_sign * rpm * RPM_TO_RAD_S
+
+    def is_cutting_speed(self, rpm: float) -> bool:
+        return abs(rpm) >= self.params.min_cutting_rpm
+
+    def evaluate_raw(self, centre_mm: np.ndarray, axis: np.ndarray, feed_mm_s: np.ndarray,
+                     rpm: float) -> np.ndarray:
+        """Fast path: the kernel's (N_OUT,) result vector (kernels.OUT_*), reused between calls.
+
+        Inputs must already be finite float64 arrays of shape (3,) with a non-zero axis; the
+        caller (the hot loop) validates them once at the edge.
+        """
+        p = self.params
+        self.workpiece.cut(self.grid, p.radius_mm, centre_mm, axis, feed_mm_s,
+                           self.omega_rad_s(rpm), p.us_n_mm2, p.k, self.is_cutting_speed(rpm),
+                           self._scratch, self._out)
+        return self._out
+
+    def evaluate(
+        self,
+        centre_mm: np.ndarray | tuple[float, float, float],
+        axis: np.ndarray | tuple[float, float, float],
+        feed_mm_s: np.ndarray | tuple[float, float, float],
+        rpm: float,
+    ) -> CuttingResult:
+        """Resistive force for a burr at ``centre_mm`` (mm) with tool axis ``axis`` (toward the
+        handle, any non-zero length), moving at ``feed_mm_s`` (mm/s) relative to the bone and
+        spinning at ``rpm`` (signed: a negative value reverses the configured spin).
+
+        Raises:
+            ValueError: on non-finite inputs, wrong shapes or a zero axis.
+        """
+        centre = _vec3("centre_mm", centre_mm)
+        ax = _vec3("axis", axis)
+        feed = _vec3("feed_mm_s", feed_mm_s)
+        if not math.isfinite(rpm):
+            raise ValueError(f"rpm must be finite, got {rpm}")
+        if float(ax @ ax) < 1e-24:
+            raise ValueError("axis must not be zero")
+        out = self.evaluate_raw(centre, ax, feed, float(rpm))
+        return self._result(out, feed)
+
+    def _result(self, out: np.ndarray, feed: np.ndarray) -> CuttingResult:
+        force = out[OUT_FORCE:OUT_FORCE + 3].copy()
+        surface_normal = out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3].copy()
+        feed_N, lateral_N, normal_N = force_components(force, feed, surface_normal)
+        cut_area = out[OUT_CUT_AREA]
+        count = int(out[OUT_COUNT])
+        return CuttingResult(
+            force_N=force,
+            feed_N=feed_N,
+            lateral_N=lateral_N,
+            normal_N=normal_N,
+            torque_Nmm=out[OUT_TORQUE:OUT_TORQUE + 3].copy(),
+            power_W=float(out[OUT_POWER]) * 1e-3,  # N·mm/s → W
+            removed_mm3_s=float(out[OUT_VOLUME_RATE]),
+            cutting_elements=count,
+            mean_speed_m_s=float(out[OUT_SPEED_AREA] / cut_area) * 1e-3 if cut_area > 0 else 0.0,
+            cutting=count > 0,
+            contact=bool(out[OUT_CONTACT_AREA] > 0.0),
+            surface_normal=surface_normal,
+        )
+
+
+def force_components(force: np.ndarray, feed: np.ndarray,
+                     surface_normal: np.ndarray) -> tuple[float, float, float]:
+    """(feed, lateral, normal) components of ``force`` as the thesis reports them (model.md).
+
+    Feed along f̂ = v_f/|v_f|; normal along ŝ; lateral along ŝ×f̂ normalised. Feed and lateral
+    are zero when there is no feed; lateral is zero for a feed along ŝ.
+    """
+    normal = float(force @ surface_normal)
+    speed = float(np.linalg.norm(feed))
+    if speed == 0.0:
+        return 0.0, 0.0, normal
+    f_hat = feed / speed
+    lateral_axis = np.cross(surface_normal, f_hat)
+    lat_len = float(np.linalg.norm(lateral_axis))
+    lateral = float(force @ lateral_axis) / lat_len if lat_len > 1e-12 else 0.0
+    return float(force @ f_hat), lateral, normal
+
+
+def _vec3(name: str, value: object) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ValueError(f"{name} must have shape (3,), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    return arr

@@ -1,0 +1,242 @@
+"""numba kernels of the cutting-force model. Arrays in, arrays out; no Python objects inside.
+
+All dot products are taken in the tool frame (e1, e2, e3 = a): the bone-surface normal and the
+feed velocity are projected once per call, so each element costs a few dozen flops. Results
+are accumulated in the tool frame and rotated to the world frame at the end.
+
+Every material ("how much bone is where each element is going") has one fused kernel per
+evaluation that computes its per-element bone fraction and hands it to :func:`accumulate`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# Layout of the float64 result vector every material kernel fills (length N_OUT).
+OUT_FORCE = 0  # [0:3] force on the burr, world frame, N
+OUT_TORQUE = 3  # [3:6] reaction torque about the burr centre, world frame, N·mm
+OUT_POWER = 6  # spindle power, N·mm/s (= mW)
+OUT_VOLUME_RATE = 7  # removed-volume rate, mm³/s
+OUT_COUNT = 8  # number of cutting elements
+OUT_CUT_AREA = 9  # burr area in bone and facing the feed, mm²
+OUT_SPEED_AREA = 10  # Σ area·|v_t| over the cutting zone, mm²·mm/s
+OUT_CONTACT_AREA = 11  # burr area in bone regardless of feed, mm²
+OUT_SURFACE_NORMAL = 12  # [12:15] outward bone-surface normal at the cut, world frame
+N_OUT = 15
+
+
+@njit(cache=True, nogil=True)
+def tool_basis(ax, ay, az):
+    """Right-handed orthonormal basis (e1, e2, e3) with e3 = the unit tool axis.
+
+    Branch-free construction of Duff et al. (2017); depends on the axis only, so the result
+    does not depend on the burr's roll about its own spin axis. For a = +z it is (x, y, z).
+    """
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    ax /= norm
+    ay /= norm
+    az /= norm
+    sign = math.copysign(1.0, az)
+    a = -1.0 / (sign + az)
+    b = ax * ay * a
+    return (
+        1.0 + sign * ax * ax * a, sign * b, -sign * ax,
+        b, sign + ay * ay * a, -ay,
+        ax, ay, az,
+    )
+
+
+@njit(cache=True, nogil=True)
+def box_fraction(g0, half_a, half_b):
+    """Fraction of a rectangular element where g0 + u + v > 0, u ∈ [−A, A], v ∈ [−B, B].
+
+    This is the exact area fraction of an element whose depth-in-bone is linear across it
+    (value g0 at the centre, half-ranges A and B along its two sides): the CDF of the sum of
+    two uniform variables, a trapezoid.
+    """
+    if half_a < half_b:
+        half_a, half_b = half_b, half_a
+    if g0 <= -(half_a + half_b):
+        return 0.0
+    if g0 >= half_a + half_b:
+        return 1.0
+    # In units of the larger half-range, so tiny elements cannot underflow 8·A·B.
+    x = g0 / half_a
+    r = half_b / half_a
+    if r <= 1e-12:
+        return 0.5 + 0.5 * x
+    if x < r - 1.0:
+        t = x + 1.0 + r
+        return t * t / (8.0 * r)
+    if x <= 1.0 - r:
+        return 0.5 + 0.5 * x
+    t = 1.0 + r - x
+    return 1.0 - t * t / (8.0 * r)
+
+
+@njit(cache=True, nogil=True)
+def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_sign, radius):
+    """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_OUT,)).
+
+    Args:
+        frac: fraction of the element in bone, [0, 1].
+        vn: n·v_f, mm/s, > 0 (the element faces the feed).
+        st, ct, cp, sp: sin θ, cos θ, cos φ, sin φ at the element centre.
+        w_force: Us·R·dθ·dφ/|ω| — the cancelled weight dA/|v_t| times Us, N·s/mm.
+        w_area: R²·sin θ·dθ·dφ, the element's area, mm².
+        speed: |v_t| = |ω|·R·sin θ, mm/s.
+        k: normal/tangential ratio; spin_sign: sign of ω along a; radius: R, mm.
+    """
+    ft = w_force * vn * frac  # |Ft|, N
+    # n = (st cp, st sp, ct), φ̂ = (−sp, cp, 0), θ̂ = (ct cp, ct sp, −st) in the tool frame.
+    # F = −|Ft| (sgn·φ̂ + K·n);  T = R·n × F = |Ft|·R·sgn·θ̂.
+    acc[0] -= ft * (-spin_sign * sp + k * st * cp)
+    acc[1] -= ft * (spin_sign * cp + k * st * sp)
+    acc[2] -= ft * (k * ct)
+    tr = ft * radius * spin_sign
+    acc[3] += tr * ct * cp
+    acc[4] += tr * ct * sp
+    acc[5] -= tr * st
+    acc[6] += ft * speed
+    area = w_area * frac
+    acc[7] += area * vn
+    acc[8] += 1.0
+    acc[9] += area
+    acc[10] += area * speed
+
+
+@njit(cache=True, nogil=True)
+def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, out):
+    """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out``."""
+    for i in range(N_OUT):
+        out[i] = acc[i]
+    for base in (0, 3):
+        a1 = acc[base]
+        a2 = acc[base + 1]
+        a3 = acc[base + 2]
+        out[base] = a1 * e1x + a2 * e2x + a3 * e3x
+        out[base + 1] = a1 * e1y + a2 * e2y + a3 * e3y
+        out[base + 2] = a1 * e1z + a2 * e2z + a3 * e3z
+
+
+@njit(cache=True, nogil=True)
+def cut_element(acc, frac, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega, k, spin_sign,
+                radius, cutting):
+    """Contact area of one element in bone, and its cut if it faces the feed."""
+    acc[11] += w_area * frac
+    if not cutting:
+        return
+    vn = st * vu + ct * v3
+    if vn > 0.0:
+        accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, abs_omega * radius * st, k,
+                   spin_sign, radius)
+
+
+@njit(cache=True, nogil=True)
+def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
+             sin_sub_p, radius, centre, axis, v_feed, omega, us, k, cutting, plane_point,
+             plane_normal, acc, out):
+    """Cutting force of a spherical burr against a flat bone half-space. One call per evaluation.
+
+    Args:
+        cos_t, sin_t: (n_theta,) band-midpoint tables; cos_p, sin_p: (n_phi,) sector tables.
+        d_theta, d_phi: element extents, rad.
+        cos_sub_t, sin_sub_t, cos_sub_p, sin_sub_p: (m,) offsets of the m×m sub-elements an
+            element is split into when the bone surface crosses it (m = 1: no split).
+        radius: R, mm.  centre: (3,) burr centre, mm.
+        axis: (3,) tool axis toward the handle (any length > 0).
+        v_feed: (3,) velocity of the burr centre relative to the bone, mm/s.
+        omega: signed spindle speed along the axis, rad/s (Ω = omega·a; forward is negative).
+        us: Us, N/mm².  k: K.  cutting: False below the minimum cutting speed (contact only).
+        plane_point: (3,) a point on the bone surface, mm.
+        plane_normal: (3,) unit outward surface normal; bone lies on the other side.
+        acc: (N_OUT,) scratch; out: (N_OUT,) result, laid out as the OUT_* constants.
+    """
+    for i in range(N_OUT):
+        acc[i] = 0.0
+        out[i] = 0.0
+    sx = plane_normal[0]
+    sy = plane_normal[1]
+    sz = plane_normal[2]
+    out[12] = sx
+    out[13] = sy
+    out[14] = sz
+    # Depth of the surface below the burr centre along the inward normal: g = d0 − R·(s·n)
+    # is how deep an element centre lies in bone (positive inside).
+    d0 = (sx * (plane_point[0] - centre[0]) + sy * (plane_point[1] - centre[1])
+          + sz * (plane_point[2] - centre[2]))
+    if d0 <= -radius:  # the whole burr is outside the bone
+        return
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = tool_basis(axis[0], axis[1], axis[2])
+    s1 = sx * e1x + sy * e1y + sz * e1z
+    s2 = sx * e2x + sy * e2y + sz * e2z
+    s3 = sx * e3x + sy * e3y + sz * e3z
+    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
+    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
+    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    abs_omega = abs(omega)
+    spin_sign = 1.0 if omega >= 0.0 else -1.0
+    w_force = us * radius * d_theta * d_phi / abs_omega if cutting else 0.0
+    half_dt = 0.5 * d_theta * radius
+    half_dp = 0.5 * d_phi * radius
+    area_unit = radius * radius * d_theta * d_phi
+    n_theta = cos_t.shape[0]
+    m = cos_sub_t.shape[0]
+    m2 = float(m * m)
+    # The depth is linearized across an element; its second-order remainder is bounded by
+    # R/2·(dθ/2 + dφ/2)² (all second derivatives of s·n are ≤ 1). An element whose linear
+    # range misses the surface by less than that may still be crossed, so it is refined.
+    curve = 0.5 * radius * (0.5 * d_theta + 0.5 * d_phi) ** 2 if m > 1 else 0.0
+    curve_sub = curve / m2
+    for kk in range(cos_p.shape[0]):
+        cp = cos_p[kk]
+        sp = sin_p[kk]
+        su = s1 * cp + s2 * sp  # s·(cos φ e1 + sin φ e2)
+        s_phi = -s1 * sp + s2 * cp  # s·φ̂
+        vu = v1 * cp + v2 * sp
+        for j in range(n_theta):
+            ct = cos_t[j]
+            st = sin_t[j]
+            g0 = d0 - radius * (st * su + ct * s3)
+            # Depth changes across the element: ∂g/∂θ = −R·s·θ̂, ∂g/∂φ = −R·sin θ·s·φ̂.
+            half_a = half_dt * abs(ct * su - st * s3)
+            half_b = half_dp * st * abs(s_phi)
+            reach = half_a + half_b + curve
+            if g0 <= -reach:
+                continue
+            if m == 1 or g0 >= reach:
+                cut_element(acc, box_fraction(g0, half_a, half_b), st, ct, cp, sp, vu, v3,
+                            w_force, area_unit * st, abs_omega, k, spin_sign, radius, cutting)
+                continue
+            # The surface crosses this element and its trace is curved in (θ, φ): refine the
+            # linear fraction and the centre-point integrand on m×m sub-elements.
+            count_before = acc[8]
+            for a in range(m):
+                ct2 = ct * cos_sub_t[a] - st * sin_sub_t[a]
+                st2 = st * cos_sub_t[a] + ct * sin_sub_t[a]
+                for b in range(m):
+                    cp2 = cp * cos_sub_p[b] - sp * sin_sub_p[b]
+                    sp2 = sp * cos_sub_p[b] + cp * sin_sub_p[b]
+                    su2 = s1 * cp2 + s2 * sp2
+                    g = d0 - radius * (st2 * su2 + ct2 * s3)
+                    ha = half_dt / m * abs(ct2 * su2 - st2 * s3)
+                    hb = half_dp / m * st2 * abs(-s1 * sp2 + s2 * cp2)
+                    if g <= -(ha + hb + curve_sub):
+                        continue
+                    cut_element(acc, box_fraction(g, ha, hb), st2, ct2, cp2, sp2,
+                                v1 * cp2 + v2 * sp2, v3, w_force / m2, area_unit * st2 / m2,
+                                abs_omega, k, spin_sign, radius, cutting)
+            if acc[8] > count_before:  # a refined element counts once
+                acc[8] = count_before + 1.0
+    finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, out)
+    out[12] = sx
+    out[13] = sy
+    out[14] = sz
+
+
+def new_buffer() -> np.ndarray:
+    """A zeroed result/scratch vector of shape (N_OUT,)."""
+    return np.zeros(N_OUT, dtype=np.float64)

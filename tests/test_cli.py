@@ -1,0 +1,103 @@
+"""``burrforce experiment`` and ``burrforce bench model`` as a user runs them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from burrforce.server.cli import main
+
+JSON_KEYS = {"orientation", "angle_deg", "feed_N", "lateral_N", "normal_N", "force_N",
+             "torque_Nmm", "power_W", "mean_speed_m_s"}
+
+
+def test_experiment_prints_the_nine_cases(capsys):
+    assert main(["experiment"]) == 0
+    out = capsys.readouterr().out
+    for orientation in ("parallel", "perpendicular", "diagonal"):
+        assert out.count(orientation) == 3
+    assert "|F| N" in out and "speed m/s" in out
+
+
+def test_experiment_json_is_stable(capsys):
+    assert main(["experiment", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 9
+    for row in rows:
+        assert set(row) == JSON_KEYS
+        assert row["orientation"] in ("parallel", "perpendicular", "diagonal")
+        assert len(row["force_N"]) == 3 and len(row["torque_Nmm"]) == 3
+    parallel = {r["angle_deg"]: r for r in rows if r["orientation"] == "parallel"}
+    assert parallel[60.0]["normal_N"] > parallel[30.0]["normal_N"]
+
+
+def test_experiment_options_reach_the_model(capsys):
+    main(["experiment", "--json", "--angles", "45"])
+    base = json.loads(capsys.readouterr().out)
+    main(["experiment", "--json", "--angles", "45", "--us", "1610.2", "--feed-mm-s", "1.5"])
+    same = json.loads(capsys.readouterr().out)  # 2×Us and ½×feed cancel
+    for a, b in zip(base, same, strict=True):
+        assert b["feed_N"] == pytest.approx(a["feed_N"], rel=1e-9)
+    main(["experiment", "--json", "--angles", "45", "--spin", "reverse", "--k", "0"])
+    rev = json.loads(capsys.readouterr().out)
+    main(["experiment", "--json", "--angles", "45", "--k", "0"])
+    fwd = json.loads(capsys.readouterr().out)
+    for a, b in zip(fwd, rev, strict=True):
+        assert b["force_N"] == pytest.approx([-x for x in a["force_N"]], abs=1e-12)
+    main(["experiment", "--json", "--angles", "45", "--elements", "200"])
+    assert len(json.loads(capsys.readouterr().out)) == 3
+
+
+def test_experiment_writes_the_plot(tmp_path, capsys):
+    path = tmp_path / "fig" / "experiment.png"
+    assert main(["experiment", "--plot", str(path)]) == 0
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
+    assert str(path) in capsys.readouterr().err
+
+
+def test_experiment_below_cutting_speed_warns(capsys):
+    assert main(["experiment", "--rpm", "1000", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert "below the minimum cutting speed" in captured.err
+    assert all(r["force_N"] == [0.0, 0.0, 0.0] for r in json.loads(captured.out))
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [(["--angles", "0,30"], "(0, 90]"),
+     (["--angles", "thirty"], "comma-separated"),
+     (["--radius-mm", "-2"], "> 0"),
+     (["--rpm", "nan"], "finite"),
+     (["--elements", "3"], "8..1000000"),
+     (["--spin", "left"], "invalid choice")],
+)
+def test_experiment_bad_arguments_say_what_is_wrong(capsys, args, message):
+    with pytest.raises(SystemExit) as exc:
+        main(["experiment", *args])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_experiment_depth_beyond_the_burr_is_an_error(capsys):
+    assert main(["experiment", "--depth-mm", "5"]) == 2
+    assert "exceeds the burr diameter" in capsys.readouterr().err
+
+
+def test_bench_model_quick_writes_its_results(tmp_path, capsys):
+    assert main(["bench", "model", "--quick", "--repeats", "3", "--out", str(tmp_path)]) == 0
+    md = (tmp_path / "model.md").read_text()
+    assert "(default)" in md and "Target:" in md
+    rows = json.loads((tmp_path / "model.json").read_text())["rows"]
+    assert {r["refine"] for r in rows} == {1, 3}
+    assert all(r["median_us"] > 0 and 0 <= r["max_error_rel"] < 0.05 for r in rows)
+    assert (tmp_path / "model.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_console_script_runs():
+    out = subprocess.run([sys.executable, "-m", "burrforce.server.cli", "--version"],
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.startswith("burrforce ")
