@@ -92,7 +92,7 @@ def test_bench_model_quick_writes_its_results(tmp_path, capsys):
     md = (tmp_path / "model.md").read_text()
     assert "(default)" in md and "Target:" in md
     rows = json.loads((tmp_path / "model.json").read_text())["rows"]
-    assert {r["refine"] for r in rows} == {1, 3}
+    assert {r["refine"] for r in rows} == {1, 2, 3}
     assert all(r["median_us"] > 0 and 0 <= r["max_error_rel"] < 0.05 for r in rows)
     assert (tmp_path / "model.png").read_bytes()[:4] == b"\x89PNG"
 

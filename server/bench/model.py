@@ -15,12 +15,12 @@ import numpy as np
 from ..model import CuttingModel, CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA, DEFAULT_REFINE
 from ..model.reference import reference_case
-from .timing import machine_line, time_calls
+from .timing import machine_line, time_interleaved
 
 TARGET_ERROR = 0.005
 TARGET_US = 20.0
 N_THETAS = (8, 12, 16, 20, 24, 32, 48, 64)
-REFINES = (1, DEFAULT_REFINE)
+REFINES = (1, 2, 3)
 
 
 @dataclass(frozen=True)
@@ -40,33 +40,40 @@ class ModelBenchRow:
 def run(repeats: int, n_thetas: tuple[int, ...] = N_THETAS,
         refines: tuple[int, ...] = REFINES) -> tuple[list[ModelBenchRow], float]:
     """Rows for every (n_theta, refine), and the median µs of the full Python ``evaluate``
-    (validation + result object) at the default resolution, for comparison."""
+    (validation + result object) at the default resolution, for comparison. All timings are
+    interleaved (``time_interleaved``) so they can be compared with each other."""
     params = CuttingParams()
     cases = list(thesis_cases())
     refs = [reference_case(c, params) for c in cases]
-    rows = []
-    for refine in refines:
-        for n_theta in n_thetas:
-            model = CuttingModel(params, n_theta=n_theta, refine=refine)
-            errors, volume_errors = [], []
-            for case, ref in zip(cases, refs, strict=True):
-                r = model.evaluate(case.centre_mm, case.axis, case.feed_velocity_mm_s, case.rpm)
-                errors.append(float(np.linalg.norm(r.force_N - ref.force_N)
-                                    / np.linalg.norm(ref.force_N)))
-                volume_errors.append(abs(r.removed_mm3_s / ref.removed_mm3_s - 1.0))
-            calls = [_raw_call(model, c) for c in cases]
-            timing = time_calls(calls, repeats)
-            rows.append(ModelBenchRow(
-                n_theta=n_theta, n_phi=model.grid.n_phi, refine=refine,
-                elements=model.grid.n_elements, median_us=timing.median_us,
-                p99_us=timing.p99_us, max_error_rel=max(errors),
-                mean_error_rel=float(np.mean(errors)),
-                max_volume_error_rel=max(volume_errors),
-                default=(n_theta, refine) == (DEFAULT_N_THETA, DEFAULT_REFINE),
-            ))
-    model = CuttingModel(params)
-    wrapper = time_calls([_full_call(model, c) for c in cases], max(1, repeats // 4))
-    return rows, wrapper.median_us
+    configs = [(n_theta, refine) for refine in refines for n_theta in n_thetas]
+    models = [CuttingModel(params, n_theta=n, refine=r) for n, r in configs]
+    accuracy = [_accuracy(model, cases, refs) for model in models]
+    groups = [[_raw_call(model, c) for c in cases] for model in models]
+    full = CuttingModel(params)
+    timings = time_interleaved([*groups, [_full_call(full, c) for c in cases]], repeats)
+    rows = [
+        ModelBenchRow(
+            n_theta=n_theta, n_phi=model.grid.n_phi, refine=refine,
+            elements=model.grid.n_elements, median_us=timing.median_us, p99_us=timing.p99_us,
+            max_error_rel=max(errors), mean_error_rel=float(np.mean(errors)),
+            max_volume_error_rel=max(volume_errors),
+            default=(n_theta, refine) == (DEFAULT_N_THETA, DEFAULT_REFINE),
+        )
+        for (n_theta, refine), model, (errors, volume_errors), timing
+        in zip(configs, models, accuracy, timings[:-1], strict=True)
+    ]
+    return rows, timings[-1].median_us
+
+
+def _accuracy(model: CuttingModel, cases, refs) -> tuple[list[float], list[float]]:
+    """Relative |F| error and removed-volume-rate error in each case."""
+    errors, volume_errors = [], []
+    for case, ref in zip(cases, refs, strict=True):
+        r = model.evaluate(case.centre_mm, case.axis, case.feed_velocity_mm_s, case.rpm)
+        errors.append(float(np.linalg.norm(r.force_N - ref.force_N)
+                            / np.linalg.norm(ref.force_N)))
+        volume_errors.append(abs(r.removed_mm3_s / ref.removed_mm3_s - 1.0))
+    return errors, volume_errors
 
 
 def _raw_call(model: CuttingModel, case):
@@ -93,7 +100,8 @@ def render_markdown(rows: list[ModelBenchRow], wrapper_us: float, command: str) 
         "max and mean over the nine cases. Volume error: removed-volume rate against the "
         "reference (which equals the analytic v·segment area). Time: one kernel call "
         "(`CuttingModel.evaluate_raw`, what the hot loop calls), round-robin over the nine "
-        "cases, median and p99 over all calls. `refine`: elements the bone surface crosses "
+        "cases, all resolutions interleaved in 10 passes so the shared machine's noise falls "
+        "on each alike; median and p99 over all calls. `refine`: elements the bone surface crosses "
         "are split refine × refine.",
         "",
         "| n_theta × n_phi | refine | elements | median µs | p99 µs | max error % "
@@ -142,6 +150,11 @@ def plot(rows: list[ModelBenchRow], path: Path) -> None:
     ax.axhline(100 * TARGET_ERROR, color="r", linestyle=":", linewidth=1,
                label="0.5 % target")
     ax.axvline(TARGET_US, color="r", linestyle="--", linewidth=1, label="20 µs target")
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    ax.set_xticks([2, 3, 5, 10, 20, 30, 50])
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("median time per evaluation (µs)")
     ax.set_ylabel("|F| error against the reference (%)")
     ax.set_title("Cutting model: error against time (labels: element count)")

@@ -24,6 +24,25 @@ class Timing:
 
 def time_calls(calls: list[Callable[[], object]], repeats: int) -> Timing:
     """Time each call in ``calls`` ``repeats`` times (round-robin), one sample per call."""
+    return summarize(sample_calls(calls, repeats))
+
+
+def time_interleaved(
+    groups: list[list[Callable[[], object]]], repeats: int, passes: int = 10
+) -> list[Timing]:
+    """Time several groups of calls in alternating passes, so that the machine's slow and fast
+    spells (this machine is shared) fall evenly on every group rather than on whichever ran
+    during them. Each group gets ``repeats`` rounds in all."""
+    samples: list[list[np.ndarray]] = [[] for _ in groups]
+    per_pass = max(1, repeats // passes)
+    for _ in range(passes):
+        for i, calls in enumerate(groups):
+            samples[i].append(sample_calls(calls, per_pass))
+    return [summarize(np.concatenate(s)) for s in samples]
+
+
+def sample_calls(calls: list[Callable[[], object]], repeats: int) -> np.ndarray:
+    """Per-call wall times in ns, shape (repeats·len(calls),)."""
     samples = np.empty(repeats * len(calls), dtype=np.int64)
     clock = time.perf_counter_ns
     i = 0
@@ -34,7 +53,11 @@ def time_calls(calls: list[Callable[[], object]], repeats: int) -> Timing:
                 call()
                 samples[i] = clock() - t0
                 i += 1
-    us = samples / 1e3
+    return samples
+
+
+def summarize(samples_ns: np.ndarray) -> Timing:
+    us = samples_ns / 1e3
     return Timing(float(np.median(us)), float(np.percentile(us, 99)), len(us))
 
 

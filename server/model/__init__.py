@@ -2,7 +2,7 @@
 
 from .burr import DEFAULT_N_THETA, BurrGrid
 from .cases import ORIENTATIONS, THESIS_ANGLES_DEG, CuttingCase, thesis_cases
-from .cutting import CuttingModel, CuttingResult, force_components
+from .cutting import CuttingModel, CuttingResult
 from .params import THESIS_K, THESIS_US_N_MM2, CuttingParams
 from .vibration import VibrationParams, vibration
 from .workpiece import FlatWorkpiece, Workpiece
@@ -21,7 +21,6 @@ __all__ = [
     "FlatWorkpiece",
     "VibrationParams",
     "Workpiece",
-    "force_components",
     "thesis_cases",
     "vibration",
 ]

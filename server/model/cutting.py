@@ -9,6 +9,7 @@ import numpy as np
 
 from .burr import DEFAULT_N_THETA, DEFAULT_REFINE, BurrGrid
 from .kernels import (
+    OUT_COMPONENTS,
     OUT_CONTACT_AREA,
     OUT_COUNT,
     OUT_CUT_AREA,
@@ -139,21 +140,17 @@ class CuttingModel:
         centre = _vec3("centre_mm", centre_mm)
         ax = _vec3("axis", axis)
         feed = _vec3("feed_mm_s", feed_mm_s)
+        rpm = float(rpm)
         if not math.isfinite(rpm):
             raise ValueError(f"rpm must be finite, got {rpm}")
-        if float(ax @ ax) < 1e-24:
+        if not ax.any():
             raise ValueError("axis must not be zero")
-        out = self.evaluate_raw(centre, ax, feed, float(rpm))
-        return self._result(out, feed)
-
-    def _result(self, out: np.ndarray, feed: np.ndarray) -> CuttingResult:
-        force = out[OUT_FORCE:OUT_FORCE + 3].copy()
-        surface_normal = out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3].copy()
-        feed_N, lateral_N, normal_N = force_components(force, feed, surface_normal)
+        out = self.evaluate_raw(centre, ax, feed, rpm)
         cut_area = out[OUT_CUT_AREA]
         count = int(out[OUT_COUNT])
+        feed_N, lateral_N, normal_N = out[OUT_COMPONENTS:OUT_COMPONENTS + 3].tolist()
         return CuttingResult(
-            force_N=force,
+            force_N=out[OUT_FORCE:OUT_FORCE + 3].copy(),
             feed_N=feed_N,
             lateral_N=lateral_N,
             normal_N=normal_N,
@@ -164,30 +161,12 @@ class CuttingModel:
             mean_speed_m_s=float(out[OUT_SPEED_AREA] / cut_area) * 1e-3 if cut_area > 0 else 0.0,
             cutting=count > 0,
             contact=bool(out[OUT_CONTACT_AREA] > 0.0),
-            surface_normal=surface_normal,
+            surface_normal=out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3].copy(),
         )
 
 
-def force_components(force: np.ndarray, feed: np.ndarray,
-                     surface_normal: np.ndarray) -> tuple[float, float, float]:
-    """(feed, lateral, normal) components of ``force`` as the thesis reports them (model.md).
-
-    Feed along f̂ = v_f/|v_f|; normal along ŝ; lateral along ŝ×f̂ normalised. Feed and lateral
-    are zero when there is no feed; lateral is zero for a feed along ŝ.
-    """
-    normal = float(force @ surface_normal)
-    speed = float(np.linalg.norm(feed))
-    if speed == 0.0:
-        return 0.0, 0.0, normal
-    f_hat = feed / speed
-    lateral_axis = np.cross(surface_normal, f_hat)
-    lat_len = float(np.linalg.norm(lateral_axis))
-    lateral = float(force @ lateral_axis) / lat_len if lat_len > 1e-12 else 0.0
-    return float(force @ f_hat), lateral, normal
-
-
 def _vec3(name: str, value: object) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
+    arr = np.array(value, dtype=np.float64)
     if arr.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {arr.shape}")
     if not np.isfinite(arr).all():

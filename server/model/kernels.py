@@ -25,7 +25,8 @@ OUT_CUT_AREA = 9  # burr area in bone and facing the feed, mm²
 OUT_SPEED_AREA = 10  # Σ area·|v_t| over the cutting zone, mm²·mm/s
 OUT_CONTACT_AREA = 11  # burr area in bone regardless of feed, mm²
 OUT_SURFACE_NORMAL = 12  # [12:15] outward bone-surface normal at the cut, world frame
-N_OUT = 15
+OUT_COMPONENTS = 15  # [15:18] feed, lateral, normal components of the force, N
+N_OUT = 18
 
 
 @njit(cache=True, nogil=True)
@@ -109,8 +110,16 @@ def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_si
 
 
 @njit(cache=True, nogil=True)
-def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, out):
-    """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out``."""
+def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
+    """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out`` and
+    resolve the force into the thesis's components.
+
+    ``acc[12:15]`` must hold the outward surface normal ŝ (world frame). Feed = F·f̂ with
+    f̂ = v_f/|v_f|; normal = F·ŝ; lateral = F·l̂ with l̂ = ŝ×f̂ normalised (left of the feed seen
+    from outside the bone). Feed and lateral are zero without feed, lateral is zero for a feed
+    along ŝ. For a feed in the surface the three are orthogonal; for a plunging feed they are
+    the thesis's projections, not a basis.
+    """
     for i in range(N_OUT):
         out[i] = acc[i]
     for base in (0, 3):
@@ -120,6 +129,27 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, out):
         out[base] = a1 * e1x + a2 * e2x + a3 * e3x
         out[base + 1] = a1 * e1y + a2 * e2y + a3 * e3y
         out[base + 2] = a1 * e1z + a2 * e2z + a3 * e3z
+    fx = out[0]
+    fy = out[1]
+    fz = out[2]
+    sx = out[12]
+    sy = out[13]
+    sz = out[14]
+    out[17] = fx * sx + fy * sy + fz * sz
+    speed = math.sqrt(v_feed[0] ** 2 + v_feed[1] ** 2 + v_feed[2] ** 2)
+    if speed == 0.0:
+        out[15] = 0.0
+        out[16] = 0.0
+        return
+    ux = v_feed[0] / speed
+    uy = v_feed[1] / speed
+    uz = v_feed[2] / speed
+    out[15] = fx * ux + fy * uy + fz * uz
+    lx = sy * uz - sz * uy
+    ly = sz * ux - sx * uz
+    lz = sx * uy - sy * ux
+    length = math.sqrt(lx * lx + ly * ly + lz * lz)
+    out[16] = (fx * lx + fy * ly + fz * lz) / length if length > 1e-12 else 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -161,6 +191,9 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
     sx = plane_normal[0]
     sy = plane_normal[1]
     sz = plane_normal[2]
+    acc[12] = sx
+    acc[13] = sy
+    acc[14] = sz
     out[12] = sx
     out[13] = sy
     out[14] = sz
@@ -231,10 +264,7 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
                                 abs_omega, k, spin_sign, radius, cutting)
             if acc[8] > count_before:  # a refined element counts once
                 acc[8] = count_before + 1.0
-    finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, out)
-    out[12] = sx
-    out[13] = sy
-    out[14] = sz
+    finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
 
 
 def new_buffer() -> np.ndarray:
