@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -11,24 +12,25 @@ from pathlib import Path
 from . import __version__
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
+def _float_arg(minimum: float, inclusive: bool):
+    """An argparse type: a finite float ≥ minimum (or > minimum)."""
+    relation = "≥" if inclusive else ">"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value) or value < minimum or (value == minimum and not inclusive):
+            raise argparse.ArgumentTypeError(
+                f"must be a finite number {relation} {minimum:g}, got {text}")
+        return value
+
+    return parse
 
 
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value < 0.0:
-        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, got {text}")
-    return value
+_positive_float = _float_arg(0.0, inclusive=False)
+_non_negative_float = _float_arg(0.0, inclusive=True)
 
 
 def _angles(text: str) -> list[float]:
@@ -55,7 +57,7 @@ def _elements(text: str) -> int:
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
     from .model.burr import DEFAULT_N_THETA
     from .model.cases import THESIS_DEPTH_MM, THESIS_FEED_MM_S, THESIS_RPM
-    from .model.params import THESIS_K, THESIS_US_N_MM2
+    from .model.params import THESIS_K, THESIS_US_N_MM2, CuttingParams
 
     p = sub.add_parser(
         "experiment",
@@ -78,9 +80,10 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
                    help=f"normal/tangential force ratio K. Default {THESIS_K:g}")
     p.add_argument("--spin", choices=("forward", "reverse"), default="forward",
                    help="forward = clockwise seen from the handle. Default forward")
-    p.add_argument("--min-cutting-rpm", type=_positive_float, default=5000.0,
+    min_rpm = CuttingParams.min_cutting_rpm
+    p.add_argument("--min-cutting-rpm", type=_positive_float, default=min_rpm,
                    help="below this spindle speed the burr touches instead of cutting. "
-                        "Default 5000")
+                        f"Default {min_rpm:g}")
     p.add_argument("--angles", type=_angles, default=[30.0, 60.0, 90.0],
                    help="cutting angles in degrees, comma-separated. Default 30,60,90")
     p.add_argument("--elements", type=_elements, default=2 * DEFAULT_N_THETA ** 2,
@@ -100,6 +103,10 @@ def _run_experiment(args: argparse.Namespace) -> int:
     if args.depth_mm > 2.0 * args.radius_mm:
         raise ValueError(f"--depth-mm {args.depth_mm} exceeds the burr diameter "
                          f"{2.0 * args.radius_mm} mm")
+    if args.plot is not None:  # fail before the work, not after it
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        if not os.access(args.plot.parent, os.W_OK):
+            raise OSError(f"cannot write the plot: {args.plot.parent} is not writable")
     params = CuttingParams(us_n_mm2=args.us, k=args.k, radius_mm=args.radius_mm,
                            spin=args.spin, min_cutting_rpm=args.min_cutting_rpm)
     grid = BurrGrid.from_element_count(args.elements)

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import settings
 
 from burrforce.server.model import CuttingParams, thesis_cases
 from burrforce.server.model.reference import reference_case
+
+# numba compiles on first call (seconds with a cold cache): time limits per example would flake.
+settings.register_profile("burrforce", deadline=None)
+settings.load_profile("burrforce")
 
 
 @pytest.fixture(scope="session")

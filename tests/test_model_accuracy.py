@@ -46,7 +46,7 @@ def test_default_discretization_within_half_a_percent(nine_cases, nine_reference
         assert abs(mag / ref_mag - 1.0) <= 0.005, (case, mag, ref_mag)
         assert _rel(r.force_N, ref.force_N) <= 0.005, case
         assert _rel(r.torque_Nmm, ref.torque_Nmm) <= 0.01, case
-        assert r.removed_mm3_s == pytest.approx(ref.removed_mm3_s, rel=0.01)
+        assert r.removed_mm3_s == pytest.approx(ref.removed_mm3_s, rel=0.006)
 
 
 def test_error_shrinks_with_resolution(nine_cases, nine_references):
@@ -57,7 +57,7 @@ def test_error_shrinks_with_resolution(nine_cases, nine_references):
     assert worst[1] / worst[2] > 2.5
 
 
-def test_boundary_refinement_beats_point_fractions(nine_cases, nine_references):
+def test_boundary_refinement_beats_unrefined_fractions(nine_cases, nine_references):
     plain = _errors(CuttingModel(refine=1), nine_cases, nine_references).max()
     refined = _errors(CuttingModel(refine=3), nine_cases, nine_references).max()
     assert refined < 0.6 * plain
@@ -81,3 +81,18 @@ def test_reference_on_a_tilted_surface_matches_the_model():
     assert _rel(r.force_N, ref.force_N) < 2e-3
     assert _rel(r.torque_Nmm, ref.torque_Nmm) < 2e-3
     assert r.removed_mm3_s == pytest.approx(ref.removed_mm3_s, rel=2e-3)
+
+
+# Worst |F| error measured over these axes and feeds at the default resolution: 1.64 % at
+# 0.1 mm, 1.09 % at 0.2 mm, 0.32 % at 0.5 mm, ≤ 0.15 % deeper. Shallow cuts span few elements.
+DEPTH_TOLERANCE = {0.1: 0.02, 0.2: 0.015, 0.5: 0.005, 1.0: 0.005, 2.0: 0.005}
+
+
+@pytest.mark.parametrize("depth", sorted(DEPTH_TOLERANCE))
+@pytest.mark.parametrize("axis", [(0.0, 0.0, 1.0), (-0.5, 0.0, 0.866), (-0.94, 0.0, 0.342)])
+@pytest.mark.parametrize("feed", [(3.0, 0.0, 0.0), (0.0, 2.0, 0.0), (2.0, 1.0, -1.0)])
+def test_other_depths_axes_and_feeds(depth, axis, feed, thesis_params):
+    centre = np.array([0.0, 0.0, 2.0 - depth])
+    r = CuttingModel().evaluate(centre, axis, feed, 60000.0)
+    ref = reference_flat(thesis_params, centre, np.array(axis), np.array(feed), 60000.0)
+    assert abs(r.force_magnitude_N / np.linalg.norm(ref.force_N) - 1.0) < DEPTH_TOLERANCE[depth]

@@ -135,11 +135,12 @@ def test_force_scales_inversely_with_spindle_speed(model):
     assert slow.power_W == pytest.approx(fast.power_W, rel=1e-12)  # same volume, same energy
 
 
-def test_roll_about_the_axis_and_axis_length_do_not_matter(model):
+def test_axis_length_does_not_matter(model):
     case = CuttingCase("diagonal", 60.0)
     a = _eval(model, case)
-    b = model.evaluate(case.centre_mm, 7.0 * case.axis, case.feed_velocity_mm_s, RPM)
-    np.testing.assert_allclose(a.force_N, b.force_N, atol=1e-14)
+    for scale in (7.0, 1e-170, 1e200):
+        b = model.evaluate(case.centre_mm, scale * case.axis, case.feed_velocity_mm_s, RPM)
+        np.testing.assert_allclose(a.force_N, b.force_N, atol=1e-14)
 
 
 def test_moving_burr_and_bone_together_changes_nothing():
@@ -219,3 +220,38 @@ def test_bad_parameters_are_refused(field, value):
 def test_bad_inputs_are_refused(model, centre, axis, feed, rpm, match):
     with pytest.raises(ValueError, match=match):
         model.evaluate(centre, axis, feed, rpm)
+
+
+def test_spin_direction_worked_by_hand(model):
+    # Axis +z (handle up), forward spin: clockwise seen from the handle, Ω = −ω·z. The cutting
+    # zone is the front-bottom of the burr (n_x > 0): there v_t = Ω × R·n points to −y, so the
+    # bone drags the burr to +y — left of a +x feed seen from above (ŝ × f̂ = z × x = +y) — and
+    # the reaction torque opposes the spin, +z.
+    r = model.evaluate((0.0, 0.0, 1.5), (0.0, 0.0, 1.0), (3.0, 0.0, 0.0), RPM)
+    assert r.force_N[1] > 0.1 and r.lateral_N == pytest.approx(r.force_N[1])
+    assert r.torque_Nmm[2] > 0.0
+    assert r.force_N[0] < 0.0 and r.force_N[2] > 0.0  # against the feed, out of the bone
+    rev = CuttingModel(CuttingParams(spin="reverse")).evaluate(
+        (0.0, 0.0, 1.5), (0.0, 0.0, 1.0), (3.0, 0.0, 0.0), RPM)
+    assert rev.lateral_N < -0.1 and rev.torque_Nmm[2] < 0.0
+
+
+@pytest.mark.parametrize("axis", [(0.0, 0.0, 1.0), (-0.5, 0.0, 0.866), (-1.0, 0.0, 0.0)])
+@pytest.mark.parametrize("feed", [(3.0, 0.0, 0.0), (0.0, 0.0, -3.0)])
+def test_force_vanishes_continuously_at_first_touch(model, axis, feed):
+    # No step in force or removal when the burr first reaches the surface. In a groove both
+    # are O(depth); plunging along the axis the force is O(√depth), because the cut cap sits
+    # on the spin pole where dA/|v_t| is largest. Accuracy this shallow is not claimed: when
+    # the cap sits on the grid's pole, each of the n_phi pole elements is bounded by the whole
+    # cap, so removal is over-counted (measured ×144 at 1e-6 mm deep, +48 % at 1e-3 mm,
+    # +4.7 % at 0.01 mm; a follow-up issue) — only continuity is checked here.
+    previous = math.inf
+    for depth in (1e-3, 1e-6, 1e-9, 1e-12):
+        r = model.evaluate((0.0, 0.0, 2.0 - depth), axis, feed, RPM)
+        magnitude = r.force_magnitude_N
+        assert magnitude <= previous
+        previous = magnitude
+        assert magnitude < 30.0 * math.sqrt(depth)
+        assert r.removed_mm3_s < 1e4 * depth
+    touching = model.evaluate((0.0, 0.0, 2.0), axis, feed, RPM)
+    assert np.all(touching.force_N == 0.0) and touching.removed_mm3_s == 0.0

@@ -22,11 +22,6 @@ class Timing:
     samples: int
 
 
-def time_calls(calls: list[Callable[[], object]], repeats: int) -> Timing:
-    """Time each call in ``calls`` ``repeats`` times (round-robin), one sample per call."""
-    return summarize(sample_calls(calls, repeats))
-
-
 def time_interleaved(
     groups: list[list[Callable[[], object]]], repeats: int, passes: int = 10
 ) -> list[Timing]:
@@ -34,10 +29,11 @@ def time_interleaved(
     spells (this machine is shared) fall evenly on every group rather than on whichever ran
     during them. Each group gets ``repeats`` rounds in all."""
     samples: list[list[np.ndarray]] = [[] for _ in groups]
-    per_pass = max(1, repeats // passes)
-    for _ in range(passes):
+    passes = max(1, min(passes, repeats))
+    for n in range(passes):
+        rounds = repeats // passes + (1 if n < repeats % passes else 0)
         for i, calls in enumerate(groups):
-            samples[i].append(sample_calls(calls, per_pass))
+            samples[i].append(sample_calls(calls, rounds))
     return [summarize(np.concatenate(s)) for s in samples]
 
 

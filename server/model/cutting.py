@@ -25,6 +25,10 @@ from .params import CuttingParams
 from .workpiece import FlatWorkpiece, Workpiece
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+# Plausibility bounds at the API edge: far beyond any burr, far below float overflow.
+MAX_POSITION_MM = 1e6
+MAX_SPEED_MM_S = 1e7
+MAX_RPM = 1e7
 
 
 @dataclass(frozen=True)
@@ -33,10 +37,11 @@ class CuttingResult:
 
     Attributes:
         force_N: force of the bone ON the burr (what the hand feels), N.
-        feed_N, lateral_N, normal_N: F·f̂, F·l̂, F·ŝ with f̂ the feed direction, ŝ the outward
-            bone-surface normal at the cut and l̂ = ŝ×f̂ normalised (left of the feed seen from
-            outside the bone). Zero without feed. They are orthogonal when the feed lies in the
-            surface; for a plunging feed they are the thesis's projections, not a basis.
+        feed_N, lateral_N, normal_N: F·f̂, F·(ŝ×f̂), F·ŝ with f̂ the feed direction and ŝ the
+            outward bone-surface normal at the cut (model.md); lateral is positive to the left
+            of the feed seen from outside the bone. Feed and lateral are zero without feed.
+            The axes are orthonormal when the feed lies in the surface; for a plunging feed
+            they are the thesis's projections, not a basis.
         torque_Nmm: reaction torque on the burr about its centre, N·mm. Its component along the
             tool axis is the spindle load torque.
         power_W: spindle power spent cutting, W (= Us × removed_mm3_s, exactly).
@@ -112,10 +117,11 @@ class CuttingModel:
 
     def evaluate_raw(self, centre_mm: np.ndarray, axis: np.ndarray, feed_mm_s: np.ndarray,
                      rpm: float) -> np.ndarray:
-        """Fast path: the kernel's (N_OUT,) result vector (kernels.OUT_*), reused between calls.
+        """Fast path: the kernel's (N_OUT,) result vector (kernels.OUT_*), reused between calls
+        (so use one model per thread, although the kernel releases the GIL).
 
-        Inputs must already be finite float64 arrays of shape (3,) with a non-zero axis; the
-        caller (the hot loop) validates them once at the edge.
+        Inputs must already be validated float64 arrays of shape (3,), the axis a unit vector,
+        as :meth:`evaluate` does; the caller (the hot loop) validates them once at the edge.
         """
         p = self.params
         self.workpiece.cut(self.grid, p.radius_mm, centre_mm, axis, feed_mm_s,
@@ -135,16 +141,15 @@ class CuttingModel:
         spinning at ``rpm`` (signed: a negative value reverses the configured spin).
 
         Raises:
-            ValueError: on non-finite inputs, wrong shapes or a zero axis.
+            ValueError: on non-finite or implausibly large inputs (beyond ±1e6 mm, 1e7 mm/s or
+                1e7 rpm), wrong shapes or a zero axis.
         """
-        centre = _vec3("centre_mm", centre_mm)
-        ax = _vec3("axis", axis)
-        feed = _vec3("feed_mm_s", feed_mm_s)
+        centre = _vec3("centre_mm", centre_mm, MAX_POSITION_MM)
+        ax = _unit("axis", axis)
+        feed = _vec3("feed_mm_s", feed_mm_s, MAX_SPEED_MM_S)
         rpm = float(rpm)
-        if not math.isfinite(rpm):
-            raise ValueError(f"rpm must be finite, got {rpm}")
-        if not ax.any():
-            raise ValueError("axis must not be zero")
+        if not abs(rpm) <= MAX_RPM:
+            raise ValueError(f"rpm must be finite and within ±{MAX_RPM:g}, got {rpm}")
         out = self.evaluate_raw(centre, ax, feed, rpm)
         cut_area = out[OUT_CUT_AREA]
         count = int(out[OUT_COUNT])
@@ -165,10 +170,20 @@ class CuttingModel:
         )
 
 
-def _vec3(name: str, value: object) -> np.ndarray:
+def _vec3(name: str, value: object, limit: float) -> np.ndarray:
     arr = np.array(value, dtype=np.float64)
     if arr.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    if not (np.abs(arr) <= limit).all():  # also false for NaN
+        raise ValueError(f"{name} must be finite and within ±{limit:g}, got {arr.tolist()}")
     return arr
+
+
+def _unit(name: str, value: object) -> np.ndarray:
+    """``value`` scaled to unit length (safely for any finite magnitude)."""
+    arr = _vec3(name, value, math.inf)
+    scale = float(np.abs(arr).max())
+    if scale == 0.0:
+        raise ValueError(f"{name} must not be zero")
+    arr /= scale
+    return arr / math.sqrt(float(arr @ arr))

@@ -114,11 +114,10 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
     """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out`` and
     resolve the force into the thesis's components.
 
-    ``acc[12:15]`` must hold the outward surface normal ŝ (world frame). Feed = F·f̂ with
-    f̂ = v_f/|v_f|; normal = F·ŝ; lateral = F·l̂ with l̂ = ŝ×f̂ normalised (left of the feed seen
-    from outside the bone). Feed and lateral are zero without feed, lateral is zero for a feed
-    along ŝ. For a feed in the surface the three are orthogonal; for a plunging feed they are
-    the thesis's projections, not a basis.
+    ``acc[12:15]`` must hold the outward surface normal ŝ (world frame). As model.md defines
+    them: feed = F·f̂ with f̂ = v_f/|v_f|; normal = F·ŝ; lateral = F·(ŝ×f̂) (left of the feed seen
+    from outside the bone). Feed and lateral are zero without feed. For a feed in the surface
+    the three axes are orthonormal; for a plunging feed they are the thesis's projections.
     """
     for i in range(N_OUT):
         out[i] = acc[i]
@@ -148,8 +147,7 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
     lx = sy * uz - sz * uy
     ly = sz * ux - sx * uz
     lz = sx * uy - sy * ux
-    length = math.sqrt(lx * lx + ly * ly + lz * lz)
-    out[16] = (fx * lx + fy * ly + fz * lz) / length if length > 1e-12 else 0.0
+    out[16] = fx * lx + fy * ly + fz * lz
 
 
 @njit(cache=True, nogil=True)
@@ -219,6 +217,10 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
     n_theta = cos_t.shape[0]
     m = cos_sub_t.shape[0]
     m2 = float(m * m)
+    # A plane cuts from the sphere a cap of area 2πR·(d0 + R); no element can hold more bone
+    # than that. Where the depth peaks inside an element (first touch) the linearized fraction
+    # overestimates wildly, and this bound makes force and removal vanish continuously there.
+    cap_area = 2.0 * math.pi * radius * (d0 + radius)
     # The depth is linearized across an element; its second-order remainder is bounded by
     # R/2·(dθ/2 + dφ/2)² (all second derivatives of s·n are ≤ 1). An element whose linear
     # range misses the surface by less than that may still be crossed, so it is refined.
@@ -241,8 +243,10 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
             if g0 <= -reach:
                 continue
             if m == 1 or g0 >= reach:
-                cut_element(acc, box_fraction(g0, half_a, half_b), st, ct, cp, sp, vu, v3,
-                            w_force, area_unit * st, abs_omega, k, spin_sign, radius, cutting)
+                w_area = area_unit * st
+                frac = min(box_fraction(g0, half_a, half_b), cap_area / w_area)
+                cut_element(acc, frac, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega, k,
+                            spin_sign, radius, cutting)
                 continue
             # The surface crosses this element and its trace is curved in (θ, φ): refine the
             # linear fraction and the centre-point integrand on m×m sub-elements.
@@ -259,9 +263,10 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
                     hb = half_dp / m * st2 * abs(-s1 * sp2 + s2 * cp2)
                     if g <= -(ha + hb + curve_sub):
                         continue
-                    cut_element(acc, box_fraction(g, ha, hb), st2, ct2, cp2, sp2,
-                                v1 * cp2 + v2 * sp2, v3, w_force / m2, area_unit * st2 / m2,
-                                abs_omega, k, spin_sign, radius, cutting)
+                    w_area = area_unit * st2 / m2
+                    frac = min(box_fraction(g, ha, hb), cap_area / w_area)
+                    cut_element(acc, frac, st2, ct2, cp2, sp2, v1 * cp2 + v2 * sp2, v3,
+                                w_force / m2, w_area, abs_omega, k, spin_sign, radius, cutting)
             if acc[8] > count_before:  # a refined element counts once
                 acc[8] = count_before + 1.0
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)

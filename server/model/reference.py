@@ -5,7 +5,11 @@ set of latitudes θ that lie in bone and face the feed is found exactly (both co
 sinusoids in θ, so their boundaries are closed-form), the smooth integrand is integrated over
 those θ-intervals by high-order Gauss–Legendre, and the result is integrated over φ by
 SciPy's adaptive vector quadrature. No element fractions, no grid: it is the continuum integral
-to ~1e-9 relative, the yardstick for the discretized model.
+to ~1e-9 relative, the yardstick for the discretized model. Forces, torques and spin velocities
+are formed in the world frame with cross products, independently of the kernels' algebra.
+
+Valid for depths of cut from ~1e-4 mm up: for a burr that barely touches, the adaptive
+quadrature can miss the sliver of longitudes where bone is.
 """
 
 from __future__ import annotations
@@ -31,7 +35,6 @@ class ReferenceResult:
     torque_Nmm: np.ndarray
     power_W: float
     removed_mm3_s: float
-    cut_area_mm2: float
     mean_speed_m_s: float
 
 
@@ -76,8 +79,6 @@ def reference_flat(
     omega = params.spin_sign * rpm * 2.0 * math.pi / 60.0
     if omega == 0.0:
         raise ValueError("the reference needs a turning spindle")
-    spin_sign = math.copysign(1.0, omega)
-    abs_omega = abs(omega)
     s = np.asarray(surface_normal, float) / np.linalg.norm(surface_normal)
     centre = np.asarray(centre_mm, float)
     v = np.asarray(feed_mm_s, float)
@@ -85,7 +86,7 @@ def reference_flat(
     level = float(s @ (np.asarray(surface_point_mm, float) - centre)) / radius  # s·n < level
     s1, s2, s3 = float(s @ e1), float(s @ e2), float(s @ e3)
     v1, v2, v3 = float(v @ e1), float(v @ e2), float(v @ e3)
-    w_force = params.us_n_mm2 * radius / abs_omega
+    omega_vec = omega * e3  # Ω = −ω·a for forward spin (params.spin_sign)
     k = params.k
 
     def at_phi(phi: float) -> np.ndarray:
@@ -103,34 +104,32 @@ def reference_flat(
             if not (in_bone and facing):
                 continue
             th = 0.5 * (hi - lo) * _GL_NODES + mid
-            wt = 0.5 * (hi - lo) * _GL_WEIGHTS
+            wt = 0.5 * (hi - lo) * _GL_WEIGHTS  # dθ weights; dA = R²·sin θ·dθ·dφ
             st, ct = np.sin(th), np.cos(th)
-            vn = st * vu + ct * v3
-            ft = w_force * vn * wt  # |Ft| per unit dφ
-            # Tool frame: n = (st cp, st sp, ct), φ̂ = (−sp, cp, 0), θ̂ = (ct cp, ct sp, −st).
-            total[0] -= np.sum(ft * (-spin_sign * sp + k * st * cp))
-            total[1] -= np.sum(ft * (spin_sign * cp + k * st * sp))
-            total[2] -= np.sum(ft * k * ct)
-            tr = ft * radius * spin_sign
-            total[3] += np.sum(tr * ct * cp)
-            total[4] += np.sum(tr * ct * sp)
-            total[5] -= np.sum(tr * st)
+            # World-frame vectors and cross products, written from model.md afresh rather
+            # than in the kernels' tool-frame algebra, so a sign slip in either shows.
+            normals = np.outer(st * cp, e1) + np.outer(st * sp, e2) + np.outer(ct, e3)
+            v_t = np.cross(omega_vec, radius * normals)  # spin velocity of each point
+            speed = np.linalg.norm(v_t, axis=1)  # = |ω|·R·sin θ
+            swept = radius * radius * st * wt * (normals @ v)  # dA·(n·v_f), mm³/s per dφ
+            ft = params.us_n_mm2 * swept / speed  # |Ft| = Us·dA·(n·v_f)/|v_t|
+            forces = -ft[:, None] * (v_t / speed[:, None]) - k * ft[:, None] * normals
+            total[0:3] += forces.sum(axis=0)
+            total[3:6] += np.cross(radius * normals, forces).sum(axis=0)
+            total[6] += float(ft @ speed)
+            total[7] += float(swept.sum())
             area = radius * radius * st * wt
-            total[6] += np.sum(ft * abs_omega * radius * st)
-            total[7] += np.sum(area * vn)
-            total[8] += np.sum(area)
-            total[9] += np.sum(area * abs_omega * radius * st)
+            total[8] += float(area.sum())
+            total[9] += float(area @ speed)
         return total
 
     total, _err = quad_vec(at_phi, 0.0, 2.0 * math.pi, epsrel=epsrel, epsabs=1e-13, limit=20000)
-    rot = np.column_stack([e1, e2, e3])
     cut_area = float(total[8])
     return ReferenceResult(
-        force_N=rot @ total[0:3],
-        torque_Nmm=rot @ total[3:6],
+        force_N=total[0:3],
+        torque_Nmm=total[3:6],
         power_W=float(total[6]) * 1e-3,
         removed_mm3_s=float(total[7]),
-        cut_area_mm2=cut_area,
         mean_speed_m_s=float(total[9]) / cut_area * 1e-3 if cut_area > 0 else 0.0,
     )
 
