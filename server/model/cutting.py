@@ -120,8 +120,9 @@ class CuttingModel:
         """Fast path: the kernel's (N_OUT,) result vector (kernels.OUT_*), reused between calls
         (so use one model per thread, although the kernel releases the GIL).
 
-        Inputs must already be validated float64 arrays of shape (3,), the axis a unit vector,
-        as :meth:`evaluate` does; the caller (the hot loop) validates them once at the edge.
+        Inputs must already be validated float64 arrays of shape (3,) — finite, within the
+        plausibility bounds, the axis non-zero (the kernel normalises it) — as :meth:`evaluate`
+        does; the caller (the hot loop) validates them once at the edge.
         """
         p = self.params
         self.workpiece.cut(self.grid, p.radius_mm, centre_mm, axis, feed_mm_s,
@@ -145,7 +146,7 @@ class CuttingModel:
                 1e7 rpm), wrong shapes or a zero axis.
         """
         centre = _vec3("centre_mm", centre_mm, MAX_POSITION_MM)
-        ax = _unit("axis", axis)
+        ax = _axis("axis", axis)
         feed = _vec3("feed_mm_s", feed_mm_s, MAX_SPEED_MM_S)
         rpm = float(rpm)
         if not abs(rpm) <= MAX_RPM:
@@ -179,11 +180,11 @@ def _vec3(name: str, value: object, limit: float) -> np.ndarray:
     return arr
 
 
-def _unit(name: str, value: object) -> np.ndarray:
-    """``value`` scaled to unit length (safely for any finite magnitude)."""
+def _axis(name: str, value: object) -> np.ndarray:
+    """``value`` rescaled so its largest component is ±1: the kernel normalises it, and any
+    finite, non-zero magnitude (1e-170 or 1e200) survives that without under- or overflow."""
     arr = _vec3(name, value, math.inf)
     scale = float(np.abs(arr).max())
     if scale == 0.0:
         raise ValueError(f"{name} must not be zero")
-    arr /= scale
-    return arr / math.sqrt(float(arr @ arr))
+    return arr / scale
