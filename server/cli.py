@@ -104,9 +104,13 @@ def _run_experiment(args: argparse.Namespace) -> int:
         raise ValueError(f"--depth-mm {args.depth_mm} exceeds the burr diameter "
                          f"{2.0 * args.radius_mm} mm")
     if args.plot is not None:  # fail before the work, not after it
-        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            args.plot.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(f"cannot write the plot to {args.plot}: {exc.strerror}") from None
         if not os.access(args.plot.parent, os.W_OK):
-            raise OSError(f"cannot write the plot: {args.plot.parent} is not writable")
+            raise OSError(f"cannot write the plot to {args.plot}: "
+                          f"{args.plot.parent} is not writable")
     params = CuttingParams(us_n_mm2=args.us, k=args.k, radius_mm=args.radius_mm,
                            spin=args.spin, min_cutting_rpm=args.min_cutting_rpm)
     grid = BurrGrid.from_element_count(args.elements)
@@ -153,6 +157,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:  # e.g. `burrforce experiment --json | head`: not an error
+        sys.stdout = None  # nothing more can reach the closed pipe, not even at exit
+        return 0
     except (ValueError, RuntimeError, OSError) as exc:
         print(f"burrforce {args.command}: error: {exc}", file=sys.stderr)
         return 2

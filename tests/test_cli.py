@@ -101,3 +101,20 @@ def test_console_script_runs():
     out = subprocess.run([sys.executable, "-m", "burrforce.server.cli", "--version"],
                          capture_output=True, text=True, check=True)
     assert out.stdout.startswith("burrforce ")
+
+
+def test_unwritable_plot_path_fails_before_the_work(capsys):
+    assert main(["experiment", "--plot", "/proc/no-such-dir/x.png"]) == 2
+    captured = capsys.readouterr()
+    assert "cannot write the plot to /proc/no-such-dir/x.png" in captured.err
+    assert captured.out == ""  # nothing computed or printed first
+
+
+def test_output_piped_into_head_is_not_an_error():
+    # 270 rows (~80 kB) outgrow the pipe's buffer, so the write really meets the closed pipe.
+    angles = ",".join(str(a) for a in range(1, 91))
+    cmd = (f"{sys.executable} -m burrforce.server.cli experiment --json --elements 128 "
+           f"--angles {angles} | head -c 10")
+    out = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], capture_output=True, text=True)
+    assert "Broken pipe" not in out.stderr and "Traceback" not in out.stderr
+    assert out.returncode == 0
