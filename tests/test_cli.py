@@ -118,3 +118,31 @@ def test_output_piped_into_head_is_not_an_error():
     out = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], capture_output=True, text=True)
     assert "Broken pipe" not in out.stderr and "Traceback" not in out.stderr
     assert out.returncode == 0
+
+
+ACCURACY_KEYS = {"voxel_mm", "elements", "orientation", "angle_deg", "error_rel", "ripple_rel",
+                 "tick_p50_us", "tick_p99_us"}
+
+
+def test_bench_accuracy_json_and_results_file(tmp_path, capsys):
+    assert main(["bench", "accuracy", "--voxel-mm", "0.4", "--elements", "512",
+                 "--measure-mm", "0.3", "--no-oblique", "--no-plot", "--json",
+                 "--out", str(tmp_path)]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 9
+    for row in rows:
+        assert ACCURACY_KEYS <= set(row)
+        assert row["voxel_mm"] == 0.4 and row["elements"] == 512
+        assert abs(row["error_rel"]) < 0.2 and row["tick_p99_us"] > 0
+    table = (tmp_path / "accuracy.md").read_text()
+    assert "| aligned | 0.4 | 512 |" in table
+    assert json.loads((tmp_path / "accuracy.json").read_text()) == rows
+
+
+@pytest.mark.parametrize("argv", [["--voxel-mm", "0"], ["--elements", "10"],
+                                  ["--elements", "a,b"]])
+def test_bench_accuracy_rejects_bad_options(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "accuracy", *argv])
+    assert exc.value.code == 2
+    assert "error" in capsys.readouterr().err

@@ -34,6 +34,8 @@ class BurrGrid:
         refine: an element the bone surface crosses is split into refine×refine sub-elements.
         cos_sub_t, sin_sub_t: shape (refine,), θ-offsets of the sub-element centres.
         cos_sub_p, sin_sub_p: shape (refine,), φ-offsets of the sub-element centres.
+        cos_theta_v, sin_theta_v: shape (n_theta + 1,), at the band edges (element corners).
+        cos_phi_v, sin_phi_v: shape (n_phi,), at the sector edges (element corners).
     """
 
     n_theta: int
@@ -49,6 +51,10 @@ class BurrGrid:
     sin_sub_t: np.ndarray
     cos_sub_p: np.ndarray
     sin_sub_p: np.ndarray
+    cos_theta_v: np.ndarray
+    sin_theta_v: np.ndarray
+    cos_phi_v: np.ndarray
+    sin_phi_v: np.ndarray
 
     @property
     def n_elements(self) -> int:
@@ -78,7 +84,9 @@ class BurrGrid:
         sub = ((np.arange(refine) + 0.5) / refine - 0.5)
         main = _tables(theta, phi)
         subs = _tables(sub * d_theta, sub * d_phi)
-        return cls(int(n_theta), int(n_phi), *main, d_theta, d_phi, int(refine), *subs)
+        corners = _tables(np.arange(n_theta + 1) * d_theta, np.arange(n_phi) * d_phi)
+        return cls(int(n_theta), int(n_phi), *main, d_theta, d_phi, int(refine), *subs,
+                   *corners)
 
     @property
     def key(self) -> tuple[int, int, int]:

@@ -145,33 +145,44 @@ class CuttingModel:
             ValueError: on non-finite or implausibly large inputs (beyond ±1e6 mm, 1e7 mm/s or
                 1e7 rpm), wrong shapes or a zero axis.
         """
-        centre = _vec3("centre_mm", centre_mm, MAX_POSITION_MM)
-        ax = _axis("axis", axis)
-        feed = _vec3("feed_mm_s", feed_mm_s, MAX_SPEED_MM_S)
-        rpm = float(rpm)
-        if not abs(rpm) <= MAX_RPM:
-            raise ValueError(f"rpm must be finite and within ±{MAX_RPM:g}, got {rpm}")
-        out = self.evaluate_raw(centre, ax, feed, rpm)
-        cut_area = out[OUT_CUT_AREA]
-        count = int(out[OUT_COUNT])
-        feed_N, lateral_N, normal_N = out[OUT_COMPONENTS:OUT_COMPONENTS + 3].tolist()
-        return CuttingResult(
-            force_N=out[OUT_FORCE:OUT_FORCE + 3].copy(),
-            feed_N=feed_N,
-            lateral_N=lateral_N,
-            normal_N=normal_N,
-            torque_Nmm=out[OUT_TORQUE:OUT_TORQUE + 3].copy(),
-            power_W=float(out[OUT_POWER]) * 1e-3,  # N·mm/s → W
-            removed_mm3_s=float(out[OUT_VOLUME_RATE]),
-            cutting_elements=count,
-            mean_speed_m_s=float(out[OUT_SPEED_AREA] / cut_area) * 1e-3 if cut_area > 0 else 0.0,
-            cutting=count > 0,
-            contact=bool(out[OUT_CONTACT_AREA] > 0.0),
-            surface_normal=out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3].copy(),
-        )
+        return result_from_out(self.evaluate_raw(*check_pose(centre_mm, axis, feed_mm_s, rpm)))
 
 
-def _vec3(name: str, value: object, limit: float) -> np.ndarray:
+def check_pose(centre_mm: object, axis: object, feed_mm_s: object,
+               rpm: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Validated (centre, axis, feed, rpm): float64 (3,) arrays and a float, the axis rescaled
+    (``check_axis``). Raises ValueError naming the bad input."""
+    centre = check_vec3("centre_mm", centre_mm, MAX_POSITION_MM)
+    ax = check_axis("axis", axis)
+    feed = check_vec3("feed_mm_s", feed_mm_s, MAX_SPEED_MM_S)
+    rpm = float(rpm)  # type: ignore[arg-type]
+    if not abs(rpm) <= MAX_RPM:
+        raise ValueError(f"rpm must be finite and within ±{MAX_RPM:g}, got {rpm}")
+    return centre, ax, feed, rpm
+
+
+def result_from_out(out: np.ndarray) -> CuttingResult:
+    """A :class:`CuttingResult` from a kernel's (N_OUT,) result vector (copied)."""
+    cut_area = out[OUT_CUT_AREA]
+    count = int(out[OUT_COUNT])
+    feed_N, lateral_N, normal_N = out[OUT_COMPONENTS:OUT_COMPONENTS + 3].tolist()
+    return CuttingResult(
+        force_N=out[OUT_FORCE:OUT_FORCE + 3].copy(),
+        feed_N=feed_N,
+        lateral_N=lateral_N,
+        normal_N=normal_N,
+        torque_Nmm=out[OUT_TORQUE:OUT_TORQUE + 3].copy(),
+        power_W=float(out[OUT_POWER]) * 1e-3,  # N·mm/s → W
+        removed_mm3_s=float(out[OUT_VOLUME_RATE]),
+        cutting_elements=count,
+        mean_speed_m_s=float(out[OUT_SPEED_AREA] / cut_area) * 1e-3 if cut_area > 0 else 0.0,
+        cutting=count > 0,
+        contact=bool(out[OUT_CONTACT_AREA] > 0.0),
+        surface_normal=out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3].copy(),
+    )
+
+
+def check_vec3(name: str, value: object, limit: float) -> np.ndarray:
     arr = np.array(value, dtype=np.float64)
     if arr.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {arr.shape}")
@@ -180,10 +191,10 @@ def _vec3(name: str, value: object, limit: float) -> np.ndarray:
     return arr
 
 
-def _axis(name: str, value: object) -> np.ndarray:
+def check_axis(name: str, value: object) -> np.ndarray:
     """``value`` rescaled so its largest component is ±1: the kernel normalises it, and any
     finite, non-zero magnitude (1e-170 or 1e200) survives that without under- or overflow."""
-    arr = _vec3(name, value, math.inf)
+    arr = check_vec3(name, value, math.inf)
     scale = float(np.abs(arr).max())
     if scale == 0.0:
         raise ValueError(f"{name} must not be zero")

@@ -79,34 +79,46 @@ def box_fraction(g0, half_a, half_b):
 
 
 @njit(cache=True, nogil=True)
-def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_sign, radius):
+def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, radius):
     """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_OUT,)).
 
     Args:
-        frac: fraction of the element in bone, [0, 1].
+        ft: tangential force magnitude |Ft|, N; fn: normal force magnitude, N (K·|Ft| for a
+            single material).
+        area: the element's area in bone, mm².
         vn: n·v_f, mm/s, > 0 (the element faces the feed).
         st, ct, cp, sp: sin θ, cos θ, cos φ, sin φ at the element centre.
-        w_force: Us·R·dθ·dφ/|ω| — the cancelled weight dA/|v_t| times Us, N·s/mm.
-        w_area: R²·sin θ·dθ·dφ, the element's area, mm².
-        speed: |v_t| = |ω|·R·sin θ, mm/s.
-        k: normal/tangential ratio; spin_sign: sign of ω along a; radius: R, mm.
+        speed: |v_t| = |ω|·R·sin θ, mm/s.  spin_sign: sign of ω along a.  radius: R, mm.
     """
-    ft = w_force * vn * frac  # |Ft|, N
     # n = (st cp, st sp, ct), φ̂ = (−sp, cp, 0), θ̂ = (ct cp, ct sp, −st) in the tool frame.
-    # F = −|Ft| (sgn·φ̂ + K·n);  T = R·n × F = |Ft|·R·sgn·θ̂.
-    acc[0] -= ft * (-spin_sign * sp + k * st * cp)
-    acc[1] -= ft * (spin_sign * cp + k * st * sp)
-    acc[2] -= ft * (k * ct)
+    # F = −|Ft|·sgn·φ̂ − Fn·n;  T = R·n × F = |Ft|·R·sgn·θ̂ (the normal part has no moment).
+    acc[0] -= -ft * spin_sign * sp + fn * st * cp
+    acc[1] -= ft * spin_sign * cp + fn * st * sp
+    acc[2] -= fn * ct
     tr = ft * radius * spin_sign
     acc[3] += tr * ct * cp
     acc[4] += tr * ct * sp
     acc[5] -= tr * st
     acc[6] += ft * speed
-    area = w_area * frac
     acc[7] += area * vn
     acc[8] += 1.0
     acc[9] += area
     acc[10] += area * speed
+
+
+@njit(cache=True, nogil=True)
+def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_sign, radius):
+    """One element of a single material (Us folded into ``w_force``).
+
+    Args:
+        frac: fraction of the element in bone, [0, 1].
+        w_force: Us·R·dθ·dφ/|ω| — the cancelled weight dA/|v_t| times Us, N·s/mm.
+        w_area: R²·sin θ·dθ·dφ, the element's area, mm².
+        k: normal/tangential ratio; the rest as :func:`accumulate_forces`.
+    """
+    ft = w_force * vn * frac  # |Ft|, N
+    accumulate_forces(acc, ft, k * ft, w_area * frac, vn, st, ct, cp, sp, speed, spin_sign,
+                      radius)
 
 
 @njit(cache=True, nogil=True)

@@ -1,0 +1,289 @@
+"""``burrforce bench accuracy``: the voxel engine's force against the analytic model, its
+ripple and its time per tick, over voxel sizes and burr element counts."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..model import CuttingParams, thesis_cases
+from ..model.burr import DEFAULT_N_THETA
+from ..model.reference import reference_case
+from .groove import groove_block, run_groove
+from .timing import machine_line
+
+VOXEL_SIZES_MM = (0.05, 0.1, 0.2, 0.4)
+N_THETAS = (16, 24, 32)
+TARGET_VOXEL_MM = 0.1
+TARGET_ERROR = 0.02
+TARGET_RIPPLE = 0.02
+TARGET_P99_US = 150.0
+#: The oblique grid: rotated 20° about x, then 15° about y, then 10° about z, so every face of
+#: the block cuts its voxels at an angle (as a scanned bone's surface does).
+OBLIQUE_EULER_XYZ_DEG = (20.0, 15.0, 10.0)
+
+
+@dataclass(frozen=True)
+class AccuracyRow:
+    voxel_mm: float
+    elements: int
+    n_theta: int
+    grid: str
+    orientation: str
+    angle_deg: float
+    force_N: float
+    reference_N: float
+    error_rel: float
+    ripple_rel: float
+    tick_p50_us: float
+    tick_p99_us: float
+
+
+def oblique_rotation() -> np.ndarray:
+    rot = np.eye(3)
+    for axis, deg in zip("xyz", OBLIQUE_EULER_XYZ_DEG, strict=True):
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        r = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+             "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
+        rot = np.asarray(r) @ rot
+    return rot
+
+
+def run(voxel_sizes: tuple[float, ...], n_thetas: tuple[int, ...], oblique: bool,
+        measure_mm: float, progress=None) -> list[AccuracyRow]:
+    params = CuttingParams()
+    cases = list(thesis_cases())
+    refs = [float(np.linalg.norm(reference_case(c, params).force_N)) for c in cases]
+    configs = [(v, n, "aligned") for v in voxel_sizes for n in n_thetas]
+    if oblique:
+        configs += [(v, DEFAULT_N_THETA, "oblique") for v in voxel_sizes]
+    rows = []
+    for voxel_mm, n_theta, grid_kind in configs:
+        direction = oblique_rotation() if grid_kind == "oblique" else None
+        for case, ref in zip(cases, refs, strict=True):
+            grid = groove_block(voxel_mm, direction)
+            groove = run_groove(case, grid, n_theta, measure_mm=measure_mm)
+            mag = groove.magnitude_N[groove.steady]
+            ticks_us = groove.tick_ns[groove.steady] / 1e3
+            rows.append(AccuracyRow(
+                voxel_mm=voxel_mm, elements=2 * n_theta * n_theta, n_theta=n_theta,
+                grid=grid_kind, orientation=case.orientation, angle_deg=case.angle_deg,
+                force_N=float(mag.mean()), reference_N=ref,
+                error_rel=float(mag.mean() / ref - 1.0),
+                ripple_rel=float(mag.std() / mag.mean()),
+                tick_p50_us=float(np.median(ticks_us)),
+                tick_p99_us=float(np.percentile(ticks_us, 99)),
+            ))
+            if progress is not None:
+                progress(rows[-1])
+    return rows
+
+
+@dataclass(frozen=True)
+class Summary:
+    voxel_mm: float
+    elements: int
+    grid: str
+    max_error_rel: float
+    max_ripple_rel: float
+    tick_p50_us: float
+    tick_p99_us: float
+
+
+def summarize(rows: list[AccuracyRow]) -> list[Summary]:
+    """One line per (voxel size, element count, grid): worst case over the nine, and the
+    median p50 / worst p99 of the tick times."""
+    keys = sorted({(r.grid, r.voxel_mm, r.elements) for r in rows})
+    out = []
+    for grid, voxel, elements in keys:
+        sel = [r for r in rows if (r.grid, r.voxel_mm, r.elements) == (grid, voxel, elements)]
+        out.append(Summary(voxel, elements, grid, max(abs(r.error_rel) for r in sel),
+                           max(r.ripple_rel for r in sel),
+                           float(np.median([r.tick_p50_us for r in sel])),
+                           max(r.tick_p99_us for r in sel)))
+    return out
+
+
+def render_markdown(rows: list[AccuracyRow], command: str, measure_mm: float) -> str:
+    summary = summarize(rows)
+    default = [s for s in summary if s.grid == "aligned" and s.voxel_mm == TARGET_VOXEL_MM
+               and s.elements == 2 * DEFAULT_N_THETA ** 2]
+    lines = [
+        "# Voxel engine: force against the analytic model, ripple, time per tick",
+        "",
+        f"Run: `{command}` on {dt.date.today().isoformat()}, {machine_line()}.",
+        "",
+        "Each case ploughs a steady groove through the workpiece block (cortical bone, "
+        "Us = 805.1 N/mm², K = 1.3, flat top at z = 0, faces inside voxels: grid offset "
+        "(0.31, 0.17, 0.43) voxel) with the thesis's pose: R = 2 mm, 0.5 mm deep, 3 mm/s, "
+        "60 000 rpm, one tick per millisecond (3 µm feed steps). Each tick is one "
+        "`BoneEngine.step_raw`: carve the burr's neighbourhood, then the force from the "
+        f"voxels. After 0.5 mm of warm-up, {measure_mm:g} mm of groove is measured. "
+        "Error: mean |F| against the converged analytic integral "
+        "(`server/model/reference.py`). Ripple: std/mean of |F| over the measured ticks. "
+        "Tick: wall time of carve + force, median and p99 over the measured ticks (this "
+        "machine is shared: p99 carries its noise). `aligned`: the block's faces are "
+        "parallel to the voxel grid; `oblique`: the grid is rotated "
+        f"{OBLIQUE_EULER_XYZ_DEG} degrees (x, y, z), so every face cuts voxels at an angle.",
+        "",
+        "## Summary (worst over the nine cases)",
+        "",
+        "| grid | voxel mm | elements | max error % | max ripple % | tick p50 µs (median) "
+        "| tick p99 µs (worst) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in summary:
+        lines.append(f"| {s.grid} | {s.voxel_mm:g} | {s.elements} | "
+                     f"{100 * s.max_error_rel:.2f} | {100 * s.max_ripple_rel:.2f} | "
+                     f"{s.tick_p50_us:.0f} | {s.tick_p99_us:.0f} |")
+    lines += ["", f"Targets at {TARGET_VOXEL_MM:g} mm: |F| within {100 * TARGET_ERROR:g} % in "
+              f"every case, ripple ≤ {100 * TARGET_RIPPLE:g} %, carve+force p99 ≤ "
+              f"{TARGET_P99_US:g} µs."]
+    for s in default:
+        met = (s.max_error_rel <= TARGET_ERROR and s.max_ripple_rel <= TARGET_RIPPLE
+               and s.tick_p99_us <= TARGET_P99_US)
+        lines.append(f"Default ({s.elements} elements, aligned): "
+                     f"{100 * s.max_error_rel:.2f} % max error, "
+                     f"{100 * s.max_ripple_rel:.2f} % max ripple, p99 {s.tick_p99_us:.0f} µs "
+                     f"— {'met' if met else 'NOT met'}.")
+    lines += [
+        "",
+        "![tick time against error](accuracy.png)",
+        "",
+        "## Every case",
+        "",
+        "| grid | voxel mm | elements | orientation | angle ° | |F| N | reference N | error % "
+        "| ripple % | p50 µs | p99 µs |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r.grid} | {r.voxel_mm:g} | {r.elements} | {r.orientation} | "
+                     f"{r.angle_deg:g} | {r.force_N:.4f} | {r.reference_N:.4f} | "
+                     f"{100 * r.error_rel:+.2f} | {100 * r.ripple_rel:.2f} | "
+                     f"{r.tick_p50_us:.0f} | {r.tick_p99_us:.0f} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def plot(rows: list[AccuracyRow], path: Path) -> None:
+    from ..experiment import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.8, 4.6))
+    summary = summarize(rows)
+    markers = {512: "v", 1152: "o", 2048: "s"}
+    colours = {}
+    for s in summary:
+        colour = colours.setdefault(s.voxel_mm, f"C{len(colours)}")
+        filled = s.grid == "aligned"
+        ax.loglog(s.tick_p99_us, max(100 * s.max_error_rel, 1e-3),
+                  markers.get(s.elements, "D"), color=colour,
+                  markerfacecolor=colour if filled else "none", markersize=8)
+    for voxel, colour in colours.items():
+        ax.plot([], [], "o", color=colour, label=f"{voxel:g} mm voxels")
+    for elements, marker in markers.items():
+        if any(s.elements == elements for s in summary):
+            ax.plot([], [], marker, color="0.4", label=f"{elements} elements")
+    if any(s.grid == "oblique" for s in summary):
+        ax.plot([], [], "o", color="0.4", markerfacecolor="none", label="oblique grid")
+    ax.axhline(100 * TARGET_ERROR, color="r", linestyle=":", linewidth=1, label="2 % target")
+    ax.axvline(TARGET_P99_US, color="r", linestyle="--", linewidth=1,
+               label="150 µs p99 target")
+    ax.set_xlabel("carve + force per tick, p99 over the worst case (µs)")
+    ax.set_ylabel("worst |F| error over the nine cases (%)")
+    ax.set_title("Voxel engine: error against time per tick")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _voxel_size(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.02 <= value <= 0.5:
+        raise argparse.ArgumentTypeError(f"voxel size must be in [0.02, 0.5] mm, got {text}")
+    return value
+
+
+def _element_counts(text: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"element counts must be comma-separated integers, got {text!r}") from None
+    if not counts or any(not 32 <= c <= 20000 for c in counts):
+        raise argparse.ArgumentTypeError(f"each element count must be in 32..20000, got {text}")
+    return counts
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "accuracy", help="voxel engine force error, ripple and tick time",
+        description="Steady grooves for the thesis's nine cases at several voxel sizes and "
+                    "burr element counts: error against the analytic force, ripple, carve + "
+                    "force time per tick. Writes OUT/accuracy.md, accuracy.json, "
+                    "accuracy.png.")
+    p.add_argument("--voxel-mm", type=_voxel_size,
+                   help="only this voxel size (mm). Default 0.05, 0.1, 0.2, 0.4")
+    p.add_argument("--elements", type=_element_counts,
+                   help="burr element counts, comma-separated (rounded to n × 2n). "
+                        f"Default {','.join(str(2 * n * n) for n in N_THETAS)}")
+    p.add_argument("--measure-mm", type=float, default=3.0,
+                   help="groove length measured per case after 0.5 mm warm-up. Default 3")
+    p.add_argument("--no-oblique", action="store_true",
+                   help="skip the runs on an oblique grid")
+    p.add_argument("--json", action="store_true",
+                   help="print the rows as JSON on stdout (progress goes to stderr)")
+    p.add_argument("--out", type=Path, default=Path("benchmarks"),
+                   help="results directory. Default ./benchmarks")
+    p.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    if not 0.1 <= args.measure_mm <= 20.0:
+        raise ValueError(f"--measure-mm must be in [0.1, 20], got {args.measure_mm}")
+    voxel_sizes = (args.voxel_mm,) if args.voxel_mm is not None else VOXEL_SIZES_MM
+    n_thetas = N_THETAS if args.elements is None else tuple(
+        max(2, round((c / 2.0) ** 0.5)) for c in args.elements)
+    flags = []
+    if args.voxel_mm is not None:
+        flags.append(f"--voxel-mm {args.voxel_mm:g}")
+    if args.elements is not None:
+        flags.append("--elements " + ",".join(map(str, args.elements)))
+    if args.measure_mm != 3.0:
+        flags.append(f"--measure-mm {args.measure_mm:g}")
+    if args.no_oblique:
+        flags.append("--no-oblique")
+    command = " ".join(["burrforce bench accuracy", *flags])
+
+    def progress(row: AccuracyRow) -> None:
+        print(f"  {row.grid} {row.voxel_mm:g} mm {row.elements} el {row.orientation} "
+              f"{row.angle_deg:g}°: error {100 * row.error_rel:+.2f} %, ripple "
+              f"{100 * row.ripple_rel:.2f} %, p50 {row.tick_p50_us:.0f} µs, "
+              f"p99 {row.tick_p99_us:.0f} µs", file=sys.stderr)
+
+    rows = run(voxel_sizes, n_thetas, not args.no_oblique, args.measure_mm, progress)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "accuracy.md").write_text(render_markdown(rows, command, args.measure_mm))
+    (out / "accuracy.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
+    if not args.no_plot:
+        plot(rows, out / "accuracy.png")
+    if args.json:
+        print(json.dumps([asdict(r) for r in rows], indent=1))
+    else:
+        print((out / "accuracy.md").read_text())
+    print(f"results written to {out}/accuracy.md, accuracy.json"
+          + ("" if args.no_plot else ", accuracy.png"), file=sys.stderr)
+    return 0

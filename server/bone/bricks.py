@@ -1,0 +1,84 @@
+"""Brick summary of a voxel grid: 8³-voxel bricks that let a tick skip empty space.
+
+Per brick the grid keeps two counts, kept exact by the carving kernel as it goes:
+``bone``, voxels that still hold bone (original density > 0 and not fully swept), and
+``full``, voxels of pristine full density (255, never swept). A brick with ``bone == 0`` is
+empty; one with ``full`` equal to its voxel count is full; anything else is mixed.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+BRICK_SHIFT = 3
+BRICK = 1 << BRICK_SHIFT  # voxels per brick edge
+BRICK_MASK = BRICK - 1
+
+EMPTY = 0
+MIXED = 1
+FULL = 2
+
+
+def brick_shape(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    return tuple((n + BRICK - 1) >> BRICK_SHIFT for n in shape)  # type: ignore[return-value]
+
+
+@njit(cache=True, nogil=True)
+def count_bricks(density, swept, bone, full):
+    """Fill ``bone`` and ``full`` (int32, brick shape) from ``density`` and ``swept`` (uint8,
+    voxel shape)."""
+    bone[:] = 0
+    full[:] = 0
+    nx, ny, nz = density.shape
+    for i in range(nx):
+        bi = i >> BRICK_SHIFT
+        for j in range(ny):
+            bj = j >> BRICK_SHIFT
+            for k in range(nz):
+                d = density[i, j, k]
+                if d == 0:
+                    continue
+                c = swept[i, j, k]
+                bk = k >> BRICK_SHIFT
+                if c < 255:
+                    bone[bi, bj, bk] += 1
+                if d == 255 and c == 0:
+                    full[bi, bj, bk] += 1
+
+
+@njit(cache=True, nogil=True)
+def voxels_per_brick(shape, out):
+    """Number of grid voxels inside each brick (edge bricks may be partial)."""
+    nbx, nby, nbz = out.shape
+    for bi in range(nbx):
+        sx = min(BRICK, shape[0] - bi * BRICK)
+        for bj in range(nby):
+            sy = min(BRICK, shape[1] - bj * BRICK)
+            for bk in range(nbz):
+                out[bi, bj, bk] = sx * sy * min(BRICK, shape[2] - bk * BRICK)
+
+
+@njit(cache=True, nogil=True)
+def bone_by_label(density, swept, labels, out):
+    """Σ density·(255 − swept) per label into ``out`` (float64, (256,)), in units of 255²
+    voxel volumes. No temporaries, so a 125 M-voxel grid costs nothing extra."""
+    out[:] = 0.0
+    nx, ny, nz = density.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                d = density[i, j, k]
+                if d != 0:
+                    out[labels[i, j, k]] += float(d) * float(255 - swept[i, j, k])
+
+
+@njit(cache=True, nogil=True)
+def forbidden_bricks(density, labels, forbidden, out):
+    """``out`` (uint8, brick shape) = 1 where a voxel with bone carries a forbidden label."""
+    out[:] = 0
+    nx, ny, nz = density.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if density[i, j, k] != 0 and forbidden[labels[i, j, k]] != 0:
+                    out[i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT] = 1

@@ -1,0 +1,179 @@
+"""Carving: the spinning burr sweeps the voxels it covers, with partial-volume accuracy."""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from .bricks import BRICK, BRICK_SHIFT
+from .voxels import CACHE_SHIFT, cache_origin, sphere_coverage, sphere_reach
+
+# Layout of the float64 contact vector the carving kernel fills (length N_TOUCH).
+TOUCH_FORBIDDEN = 0  # forbidden voxels holding bone that the burr overlaps
+TOUCH_LABEL = 1  # label of the most-covered of them
+TOUCH_COVERAGE = 2  # its coverage, 0–255
+TOUCH_POSITION = 3  # [3:6] its centre, grid frame, mm
+TOUCH_VISITED = 6  # voxels examined (cost statistics)
+TOUCH_BRICKS = 7  # bricks whose bone changed
+TOUCH_NEAR_BONE = 8  # 1 if any brick holding bone lies within the burr's reach
+N_TOUCH = 9
+
+
+@njit(cache=True, nogil=True)
+def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
+                 brick_forbidden, spacing, centre, previous, radius, carve, version_next,
+                 removed, touch, cache, tick):
+    """Sweep the voxels a burr sphere covers (one call per tick).
+
+    Raises each covered voxel's ``swept`` to its coverage (never lowers it), adds the bone
+    this removed to ``removed[label]`` (units: density × swept steps, i.e. 255² per voxel
+    volume), keeps the brick counts exact and stamps changed bricks with ``version_next``.
+    With ``carve`` False nothing is written: the call only reports contact (a burr that is not
+    spinning fast enough touches but does not cut).
+
+    Args:
+        density, swept, labels: uint8 voxel arrays (nx, ny, nz).
+        forbidden: uint8 (256,), 1 for labels whose contact is recorded.
+        brick_bone, brick_full: int32 brick counts; brick_version: int64 per brick.
+        brick_forbidden: uint8 per brick, 1 where a forbidden label holds bone.
+        spacing: (3,) voxel size, mm.  centre: (3,) burr centre, grid frame, mm.
+        previous: (3,) where the same burr last carved, or NaN. A voxel no farther from there
+            than from ``centre`` cannot gain coverage, so it is skipped (a burr at rest
+            carves nothing); bricks holding forbidden labels are always checked for contact.
+        radius: burr radius, mm.
+        removed: float64 (256,), accumulated.  touch: float64 (N_TOUCH,), overwritten.
+        cache, tick: the tick's coverage cache (``voxels.cached_coverage``), filled here.
+
+    Returns:
+        True if any bone was removed.
+    """
+    for n in range(N_TOUCH):
+        touch[n] = 0.0
+    hx = spacing[0]
+    hy = spacing[1]
+    hz = spacing[2]
+    cx = centre[0]
+    cy = centre[1]
+    cz = centre[2]
+    nx, ny, nz = density.shape
+    r_in2, r_out2 = sphere_reach(radius, hx, hy, hz)
+    r_out = math.sqrt(r_out2)
+    i_lo = max(0, math.ceil((cx - r_out) / hx))
+    i_hi = min(nx - 1, math.floor((cx + r_out) / hx))
+    j_lo = max(0, math.ceil((cy - r_out) / hy))
+    j_hi = min(ny - 1, math.floor((cy + r_out) / hy))
+    k_lo = max(0, math.ceil((cz - r_out) / hz))
+    k_hi = min(nz - 1, math.floor((cz + r_out) / hz))
+    any_removed = False
+    best = -1
+    visited = 0
+    o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
+    l0, l1, l2 = cache.shape
+    stamp = tick << CACHE_SHIFT
+    # Half-space of points closer to ``previous`` than to ``centre``: (x − mid)·Δ ≤ 0.
+    has_prev = carve and previous[0] == previous[0]
+    qx = cx - previous[0] if has_prev else 0.0
+    qy = cy - previous[1] if has_prev else 0.0
+    qz = cz - previous[2] if has_prev else 0.0
+    q0 = 0.5 * (qx * (cx + previous[0]) + qy * (cy + previous[1]) + qz * (cz + previous[2])) \
+        if has_prev else 0.0
+    for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
+        a0 = max(bi * BRICK, i_lo)
+        a1 = min(bi * BRICK + BRICK - 1, i_hi)
+        ex = _axis_gap(cx, a0 * hx, a1 * hx)
+        fx = max(abs(cx - a0 * hx), abs(cx - a1 * hx))
+        for bj in range(j_lo >> BRICK_SHIFT, (j_hi >> BRICK_SHIFT) + 1):
+            b0 = max(bj * BRICK, j_lo)
+            b1 = min(bj * BRICK + BRICK - 1, j_hi)
+            ey = _axis_gap(cy, b0 * hy, b1 * hy)
+            fy = max(abs(cy - b0 * hy), abs(cy - b1 * hy))
+            for bk in range(k_lo >> BRICK_SHIFT, (k_hi >> BRICK_SHIFT) + 1):
+                if brick_bone[bi, bj, bk] == 0:
+                    continue
+                c0 = max(bk * BRICK, k_lo)
+                c1 = min(bk * BRICK + BRICK - 1, k_hi)
+                ez = _axis_gap(cz, c0 * hz, c1 * hz)
+                if ex * ex + ey * ey + ez * ez >= r_out2:
+                    continue
+                touch[TOUCH_NEAR_BONE] = 1.0
+                skip_old = has_prev and brick_forbidden[bi, bj, bk] == 0
+                if skip_old and (max(qx * a0 * hx, qx * a1 * hx) + max(qy * b0 * hy, qy * b1 * hy)
+                                 + max(qz * c0 * hz, qz * c1 * hz)) <= q0:
+                    continue
+                fz = max(abs(cz - c0 * hz), abs(cz - c1 * hz))
+                inside = fx * fx + fy * fy + fz * fz <= r_in2
+                brick_changed = False
+                for i in range(a0, a1 + 1):
+                    dx = i * hx - cx
+                    for j in range(b0, b1 + 1):
+                        dy = j * hy - cy
+                        rest = r_out2 - dx * dx - dy * dy
+                        if rest <= 0.0:
+                            continue
+                        reach_z = math.sqrt(rest)
+                        k_first = max(c0, math.ceil((cz - reach_z) / hz))
+                        k_last = min(c1, math.floor((cz + reach_z) / hz))
+                        if skip_old:
+                            # Keep only k with q_row + qz·k·hz > 0 (closer to ``centre``).
+                            q_row = qx * i * hx + qy * j * hy - q0
+                            if qz > 0.0:
+                                k_first = max(k_first, math.floor(-q_row / (qz * hz)) + 1)
+                            elif qz < 0.0:
+                                k_last = min(k_last, math.ceil(-q_row / (qz * hz)) - 1)
+                            elif q_row <= 0.0:
+                                continue
+                        for k in range(k_first, k_last + 1):
+                            old = swept[i, j, k]
+                            if old == 255:
+                                continue  # swept through: nothing left to take or touch
+                            visited += 1
+                            if inside:
+                                cq = 255
+                            else:
+                                cq = sphere_coverage(dx, dy, k * hz - cz, radius, hx, hy, hz,
+                                                     r_in2, r_out2)
+                                a = i - o0
+                                b = j - o1
+                                c = k - o2
+                                if 0 <= a < l0 and 0 <= b < l1 and 0 <= c < l2:
+                                    cache[a, b, c] = stamp | cq
+                            if cq == 0:
+                                continue
+                            d = density[i, j, k]
+                            if d != 0 and forbidden[labels[i, j, k]] != 0:
+                                touch[TOUCH_FORBIDDEN] += 1.0
+                                if cq > best:
+                                    best = cq
+                                    touch[TOUCH_LABEL] = labels[i, j, k]
+                                    touch[TOUCH_COVERAGE] = cq
+                                    touch[TOUCH_POSITION] = i * hx
+                                    touch[TOUCH_POSITION + 1] = j * hy
+                                    touch[TOUCH_POSITION + 2] = k * hz
+                            if not carve or cq <= old:
+                                continue
+                            swept[i, j, k] = cq
+                            if d == 0:
+                                continue
+                            removed[labels[i, j, k]] += float(d) * float(cq - old)
+                            brick_changed = True
+                            if old == 0 and d == 255:
+                                brick_full[bi, bj, bk] -= 1
+                            if cq == 255:
+                                brick_bone[bi, bj, bk] -= 1
+                if brick_changed:
+                    brick_version[bi, bj, bk] = version_next
+                    touch[TOUCH_BRICKS] += 1.0
+                    any_removed = True
+    touch[TOUCH_VISITED] = visited
+    return any_removed
+
+
+@njit(cache=True, nogil=True)
+def _axis_gap(c, lo, hi):
+    """Distance from c to the interval [lo, hi] along one axis."""
+    if c < lo:
+        return lo - c
+    if c > hi:
+        return c - hi
+    return 0.0

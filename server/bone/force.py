@@ -1,0 +1,203 @@
+"""The cutting force of a spherical burr against a voxel bone (one call per tick).
+
+The same model as the flat workpiece (model.md): elements on a latitude/longitude grid about the
+spin axis, the cancelled weight dA/|v_t| = R·dθ·dφ/ω, each element's share of bone. Here the
+share comes from the voxels (``voxels.sample_bone``): the original density, trilinear, times
+the share of the surroundings no other burr position has swept. Elements whose four corners
+agree are integrated from their corners; an element the bone's surface crosses is integrated on m×m
+sub-elements, so the interpolated density ramp is averaged rather than point-sampled — that
+keeps the bone's volume, and therefore the force, unbiased.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from ..model.kernels import N_OUT, accumulate_forces, finish, tool_basis
+from .voxels import cache_origin, sample_bone, sphere_reach
+
+#: Elements whose corner fractions differ by more than this are integrated on sub-elements.
+#: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
+#: the groove the burr is ploughing) by a few per cent, where the corner mean is exact enough.
+SMOOTH_SPREAD = 0.25
+
+
+@njit(cache=True, nogil=True)
+def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
+               sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
+               cutting, carved, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
+               vert, acc, out, cache, tick):
+    """Cutting force of the burr against the voxel bone, in the grid frame.
+
+    Args:
+        cos_t … sin_sub_p: the burr tables (``BurrGrid``); cos_tv, sin_tv: (n_theta + 1,) and
+            cos_pv, sin_pv: (n_phi,) at the element corners.
+        radius: R, mm.  centre, axis, v_feed: (3,) grid frame (mm, any-length axis, mm/s).
+        omega: signed spindle speed along the axis, rad/s.  cutting: fast enough to cut.
+        carved: the burr has just carved at ``centre`` this tick (see ``sample_bone``).
+        density, swept, labels: uint8 voxels; us_tab, usk_tab: (256,) Us and Us·K per label.
+        brick_bone: int32 brick counts.  spacing: (3,) voxel size, mm.
+        vert: float64 scratch of shape (n_theta + 1, n_phi, 3) (corner samples).
+        acc: (N_OUT,) scratch; out: (N_OUT,) result (``model.kernels.OUT_*``, grid frame).
+        cache, tick: the tick's coverage cache (``voxels.cached_coverage``).
+    """
+    for n in range(N_OUT):
+        acc[n] = 0.0
+        out[n] = 0.0
+    hx = spacing[0]
+    hy = spacing[1]
+    hz = spacing[2]
+    cx = centre[0]
+    cy = centre[1]
+    cz = centre[2]
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = tool_basis(axis[0], axis[1], axis[2])
+    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
+    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
+    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
+    sample_all = not (cutting and has_feed)  # contact needs every element
+    abs_omega = abs(omega)
+    spin_sign = 1.0 if omega >= 0.0 else -1.0
+    w_unit = radius * d_theta * d_phi / abs_omega if cutting else 0.0
+    area_unit = radius * radius * d_theta * d_phi
+    r_in2, r_out2 = sphere_reach(radius, hx, hy, hz)
+    o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
+    n_theta = cos_t.shape[0]
+    n_phi = cos_p.shape[0]
+    m = cos_sub_t.shape[0]
+    m2 = float(m * m)
+    # Pass 1: sample the bone once at every element corner that an evaluated element needs.
+    for j in range(n_theta + 1):
+        st = sin_tv[j]
+        ct = cos_tv[j]
+        pole = j == 0 or j == n_theta
+        for k in range(n_phi):
+            if pole and k > 0:
+                for q in range(3):
+                    vert[j, k, q] = vert[j, 0, q]
+                continue
+            needed = sample_all
+            if not needed:
+                # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
+                km = k - 1 if k > 0 else n_phi - 1
+                for jj in range(max(j - 1, 0), min(j, n_theta - 1) + 1):
+                    for kk in (km, k):
+                        if sin_t[jj] * (v1 * cos_p[kk] + v2 * sin_p[kk]) + cos_t[jj] * v3 > 0.0:
+                            needed = True
+            if not needed:
+                vert[j, k, 0] = 0.0
+                vert[j, k, 1] = 0.0
+                vert[j, k, 2] = 0.0
+                continue
+            n1 = st * cos_pv[k]
+            n2 = st * sin_pv[k]
+            px = cx + radius * (n1 * e1x + n2 * e2x + ct * e3x)
+            py = cy + radius * (n1 * e1y + n2 * e2y + ct * e3y)
+            pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
+            frac, us_f, usk_f, _, _, _ = sample_bone(
+                density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
+                cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1, o2, tick)
+            vert[j, k, 0] = frac
+            vert[j, k, 1] = us_f
+            vert[j, k, 2] = usk_f
+    # Outward surface normal: from the density gradient where the bone's surface crosses the
+    # burr; failing that, against the mean normal of the elements in bone.
+    gsx = 0.0
+    gsy = 0.0
+    gsz = 0.0
+    nsum1 = 0.0
+    nsum2 = 0.0
+    nsum3 = 0.0
+    # Pass 2: integrate the elements.
+    for k in range(n_phi):
+        k1 = k + 1 if k + 1 < n_phi else 0
+        cp = cos_p[k]
+        sp = sin_p[k]
+        vu = v1 * cp + v2 * sp
+        for j in range(n_theta):
+            st = sin_t[j]
+            ct = cos_t[j]
+            vn = st * vu + ct * v3
+            faces = cutting and vn > 0.0
+            if not faces and not sample_all:
+                continue
+            b00 = vert[j, k, 0]
+            b10 = vert[j + 1, k, 0]
+            b01 = vert[j, k1, 0]
+            b11 = vert[j + 1, k1, 0]
+            hi = max(max(b00, b10), max(b01, b11))
+            if hi <= 0.0:
+                continue
+            lo = min(min(b00, b10), min(b01, b11))
+            if hi - lo <= SMOOTH_SPREAD:
+                # The bone varies little across the element: the corner mean (trapezoid rule)
+                # is its integral.
+                w_area = area_unit * st
+                area = w_area * 0.25 * (b00 + b10 + b01 + b11)
+                acc[11] += area
+                nsum1 += area * st * cp
+                nsum2 += area * st * sp
+                nsum3 += area * ct
+                if faces:
+                    us_f = 0.25 * (vert[j, k, 1] + vert[j + 1, k, 1] + vert[j, k1, 1]
+                                   + vert[j + 1, k1, 1])
+                    usk_f = 0.25 * (vert[j, k, 2] + vert[j + 1, k, 2] + vert[j, k1, 2]
+                                    + vert[j + 1, k1, 2])
+                    scale = w_unit * vn
+                    accumulate_forces(acc, scale * us_f, scale * usk_f, area, vn, st, ct, cp,
+                                      sp, abs_omega * radius * st, spin_sign, radius)
+                continue
+            # The bone's surface crosses this element: integrate it on m×m sub-elements.
+            count_before = acc[8]
+            for a in range(m):
+                ct2 = ct * cos_sub_t[a] - st * sin_sub_t[a]
+                st2 = st * cos_sub_t[a] + ct * sin_sub_t[a]
+                for b in range(m):
+                    cp2 = cp * cos_sub_p[b] - sp * sin_sub_p[b]
+                    sp2 = sp * cos_sub_p[b] + cp * sin_sub_p[b]
+                    n1 = st2 * cp2
+                    n2 = st2 * sp2
+                    px = cx + radius * (n1 * e1x + n2 * e2x + ct2 * e3x)
+                    py = cy + radius * (n1 * e1y + n2 * e2y + ct2 * e3y)
+                    pz = cz + radius * (n1 * e1z + n2 * e2z + ct2 * e3z)
+                    frac, us_f, usk_f, gx, gy, gz = sample_bone(
+                        density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
+                        hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1,
+                        o2, tick)
+                    if frac <= 0.0:
+                        continue
+                    w_area = area_unit * st2 / m2
+                    area = w_area * frac
+                    acc[11] += area
+                    nsum1 += area * n1
+                    nsum2 += area * n2
+                    nsum3 += area * ct2
+                    gsx += w_area * gx
+                    gsy += w_area * gy
+                    gsz += w_area * gz
+                    vn2 = n1 * v1 + n2 * v2 + ct2 * v3
+                    if cutting and vn2 > 0.0:
+                        scale = w_unit * vn2 / m2
+                        accumulate_forces(acc, scale * us_f, scale * usk_f, area, vn2, st2, ct2,
+                                          cp2, sp2, abs_omega * radius * st2, spin_sign,
+                                          radius)
+            if acc[8] > count_before:  # a refined element counts once
+                acc[8] = count_before + 1.0
+    g_norm = math.sqrt(gsx * gsx + gsy * gsy + gsz * gsz)
+    if g_norm > 0.0:
+        # The density grows into the bone: the outward normal is against its gradient.
+        acc[12] = -gsx / g_norm
+        acc[13] = -gsy / g_norm
+        acc[14] = -gsz / g_norm
+    else:
+        wx = nsum1 * e1x + nsum2 * e2x + nsum3 * e3x
+        wy = nsum1 * e1y + nsum2 * e2y + nsum3 * e3y
+        wz = nsum1 * e1z + nsum2 * e2z + nsum3 * e3z
+        w_norm = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if w_norm > 0.0:
+            acc[12] = -wx / w_norm
+            acc[13] = -wy / w_norm
+            acc[14] = -wz / w_norm
+    finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)

@@ -1,0 +1,303 @@
+"""Per-voxel numerics shared by carving and the voxel force: sphere coverage and bone sampling.
+
+Positions are in the grid frame, mm, with voxel (i, j, k)'s centre at (i·hx, j·hy, k·hz).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from ..model.kernels import box_fraction
+from .bricks import BRICK_MASK, BRICK_SHIFT
+
+
+@njit(cache=True, nogil=True)
+def sphere_reach(radius, hx, hy, hz):
+    """Squared radii (inner, outer) between which a voxel is partly covered by a sphere.
+
+    A voxel's extent along any unit normal is at most half its diagonal, so centres closer
+    than R − diag/2 are fully inside and those beyond R + diag/2 fully outside.
+    """
+    half_diag = 0.5 * math.sqrt(hx * hx + hy * hy + hz * hz)
+    r_in = max(radius - half_diag, 0.0)
+    r_out = radius + half_diag
+    return r_in * r_in, r_out * r_out
+
+
+@njit(cache=True, nogil=True)
+def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
+    """Fraction of a voxel inside a sphere, quantized to 0–255.
+
+    (dx, dy, dz): voxel centre minus sphere centre, mm. Within a voxel the sphere is taken as
+    its tangent plane (the error is O(h²/R)); the covered fraction is then the distribution of
+    the voxel's extent along the normal, approximated by a trapezoid whose half-ranges are the
+    largest of the three projected half-sizes and the sum of the other two — exact for faces
+    aligned with an axis, symmetric about the surface always, so no volume is gained or lost
+    on average.
+    """
+    d2 = dx * dx + dy * dy + dz * dz
+    if d2 >= r_out2:
+        return 0
+    if d2 <= r_in2:
+        return 255
+    d = math.sqrt(d2)
+    a = 0.5 * hx * abs(dx) / d
+    b = 0.5 * hy * abs(dy) / d
+    c = 0.5 * hz * abs(dz) / d
+    big = max(a, max(b, c))
+    frac = box_fraction(radius - d, big, a + b + c - big)
+    return int(frac * 255.0 + 0.5)
+
+
+#: Coverage cache entries hold tick·256 + coverage: valid only for the tick that wrote them.
+CACHE_SHIFT = 8
+
+
+def coverage_cache_shape(radius, spacing):
+    """Shape of a tick's coverage cache: the burr's voxel neighbourhood plus a stencil's reach."""
+    half_diag = 0.5 * math.sqrt(sum(h * h for h in spacing))
+    return tuple(2 * (math.ceil((radius + half_diag) / h) + 2) + 2 for h in spacing)
+
+
+@njit(cache=True, nogil=True)
+def cache_origin(cache, cx, cy, cz, hx, hy, hz):
+    """Voxel index of the cache's (0, 0, 0) for a burr centred at (cx, cy, cz)."""
+    return (math.floor(cx / hx) - (cache.shape[0] - 2) // 2,
+            math.floor(cy / hy) - (cache.shape[1] - 2) // 2,
+            math.floor(cz / hz) - (cache.shape[2] - 2) // 2)
+
+
+@njit(cache=True, nogil=True)
+def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy, hz, r_in2,
+                    r_out2):
+    """``sphere_coverage`` of voxel (i, j, k), computed at most once per tick: carving fills
+    the cache, and every bone sample whose stencil shares the voxel reads it back."""
+    a = i - o0
+    b = j - o1
+    c = k - o2
+    if 0 <= a < cache.shape[0] and 0 <= b < cache.shape[1] and 0 <= c < cache.shape[2]:
+        entry = cache[a, b, c]
+        if (entry >> CACHE_SHIFT) == tick:
+            return entry & 255
+        cq = sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
+        cache[a, b, c] = (tick << CACHE_SHIFT) | cq
+        return cq
+    return sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
+
+
+@njit(cache=True, nogil=True)
+def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
+                cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1, o2, tick):
+    """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
+
+    Returns (fraction, us_fraction, usk_fraction, gx, gy, gz):
+        fraction: the original density at p (0–1) times its availability — the share of the
+            space around p outside the burr that no *other* burr position has swept. Space the
+            burr at (cx, cy, cz) has itself just carved (``carved``) counts as available: it
+            was bone a moment ago, and it is what the model's elements are cutting.
+        us_fraction, usk_fraction: fraction weighted by each voxel's Us, Us·K (N/mm²).
+        gx, gy, gz: gradient of the original density, 1/mm (points into the bone).
+
+    Voxels outside the grid are empty and unswept. ``cache``, (o0, o1, o2), ``tick``: the
+    tick's coverage cache (``cached_coverage``).
+    """
+    nx, ny, nz = density.shape
+    fx = px / hx
+    fy = py / hy
+    fz = pz / hz
+    i0f = math.floor(fx)
+    j0f = math.floor(fy)
+    k0f = math.floor(fz)
+    if i0f < -1.0 or j0f < -1.0 or k0f < -1.0 or i0f >= nx or j0f >= ny or k0f >= nz:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    i0 = int(i0f)
+    j0 = int(j0f)
+    k0 = int(k0f)
+    # A stencil inside one brick that holds no bone reads nothing else.
+    if (i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz
+            and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
+            and (k0 & BRICK_MASK) != BRICK_MASK
+            and brick_bone[i0 >> BRICK_SHIFT, j0 >> BRICK_SHIFT, k0 >> BRICK_SHIFT] == 0):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    tx = fx - i0f
+    ty = fy - j0f
+    tz = fz - k0f
+    if i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz:
+        bone, us, usk, gx, gy, gz, swept_any = _gather_interior(
+            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
+    else:
+        bone, us, usk, gx, gy, gz, swept_any = _gather_edge(
+            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
+    if bone == 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    scale = 1.0 / 255.0
+    if swept_any:
+        scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius,
+                               r_in2, r_out2, carved, cache, o0, o1, o2, tick)
+    return (bone * scale, us * scale, usk * scale,
+            gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
+
+
+@njit(cache=True, nogil=True)
+def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
+    """Trilinear original density (×255), its Us and Us·K weighted sums and its gradient (per
+    voxel step) for a stencil inside the grid, unrolled: the hot path of every sample."""
+    i1 = i0 + 1
+    j1 = j0 + 1
+    k1 = k0 + 1
+    d000 = density[i0, j0, k0]
+    d001 = density[i0, j0, k1]
+    d010 = density[i0, j1, k0]
+    d011 = density[i0, j1, k1]
+    d100 = density[i1, j0, k0]
+    d101 = density[i1, j0, k1]
+    d110 = density[i1, j1, k0]
+    d111 = density[i1, j1, k1]
+    swept_any = (swept[i0, j0, k0] | swept[i0, j0, k1] | swept[i0, j1, k0] | swept[i0, j1, k1]
+                 | swept[i1, j0, k0] | swept[i1, j0, k1] | swept[i1, j1, k0]
+                 | swept[i1, j1, k1]) != 0
+    if (d000 | d001 | d010 | d011 | d100 | d101 | d110 | d111) == 0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, swept_any
+    ux = 1.0 - tx
+    uy = 1.0 - ty
+    uz = 1.0 - tz
+    # Weight × density per corner.
+    r000 = ux * uy * uz * float(d000)
+    r001 = ux * uy * tz * float(d001)
+    r010 = ux * ty * uz * float(d010)
+    r011 = ux * ty * tz * float(d011)
+    r100 = tx * uy * uz * float(d100)
+    r101 = tx * uy * tz * float(d101)
+    r110 = tx * ty * uz * float(d110)
+    r111 = tx * ty * tz * float(d111)
+    bone = r000 + r001 + r010 + r011 + r100 + r101 + r110 + r111
+    l000 = labels[i0, j0, k0]
+    if (l000 == labels[i0, j0, k1] and l000 == labels[i0, j1, k0]
+            and l000 == labels[i0, j1, k1] and l000 == labels[i1, j0, k0]
+            and l000 == labels[i1, j0, k1] and l000 == labels[i1, j1, k0]
+            and l000 == labels[i1, j1, k1]):
+        us = bone * us_tab[l000]
+        usk = bone * usk_tab[l000]
+    else:
+        us = (r000 * us_tab[l000] + r001 * us_tab[labels[i0, j0, k1]]
+              + r010 * us_tab[labels[i0, j1, k0]] + r011 * us_tab[labels[i0, j1, k1]]
+              + r100 * us_tab[labels[i1, j0, k0]] + r101 * us_tab[labels[i1, j0, k1]]
+              + r110 * us_tab[labels[i1, j1, k0]] + r111 * us_tab[labels[i1, j1, k1]])
+        usk = (r000 * usk_tab[l000] + r001 * usk_tab[labels[i0, j0, k1]]
+               + r010 * usk_tab[labels[i0, j1, k0]] + r011 * usk_tab[labels[i0, j1, k1]]
+               + r100 * usk_tab[labels[i1, j0, k0]] + r101 * usk_tab[labels[i1, j0, k1]]
+               + r110 * usk_tab[labels[i1, j1, k0]] + r111 * usk_tab[labels[i1, j1, k1]])
+    f000 = float(d000)
+    f001 = float(d001)
+    f010 = float(d010)
+    f011 = float(d011)
+    f100 = float(d100)
+    f101 = float(d101)
+    f110 = float(d110)
+    f111 = float(d111)
+    gx = (uy * uz * (f100 - f000) + uy * tz * (f101 - f001) + ty * uz * (f110 - f010)
+          + ty * tz * (f111 - f011))
+    gy = (ux * uz * (f010 - f000) + ux * tz * (f011 - f001) + tx * uz * (f110 - f100)
+          + tx * tz * (f111 - f101))
+    gz = (ux * uy * (f001 - f000) + ux * ty * (f011 - f010) + tx * uy * (f101 - f100)
+          + tx * ty * (f111 - f110))
+    return bone, us, usk, gx, gy, gz, swept_any
+
+
+@njit(cache=True, nogil=True)
+def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
+    """``_gather_interior`` for a stencil that leaves the grid (outside voxels are empty)."""
+    nx, ny, nz = density.shape
+    bone = 0.0
+    us = 0.0
+    usk = 0.0
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    swept_any = False
+    for di in range(2):
+        i = i0 + di
+        if i < 0 or i >= nx:
+            continue
+        wx = tx if di == 1 else 1.0 - tx
+        sx = 1.0 if di == 1 else -1.0
+        for dj in range(2):
+            j = j0 + dj
+            if j < 0 or j >= ny:
+                continue
+            wy = ty if dj == 1 else 1.0 - ty
+            sy = 1.0 if dj == 1 else -1.0
+            for dk in range(2):
+                k = k0 + dk
+                if k < 0 or k >= nz:
+                    continue
+                if swept[i, j, k] != 0:
+                    swept_any = True
+                d = density[i, j, k]
+                if d == 0:
+                    continue
+                wz = tz if dk == 1 else 1.0 - tz
+                sz = 1.0 if dk == 1 else -1.0
+                rho = float(d)
+                lab = labels[i, j, k]
+                w = wx * wy * wz
+                bone += w * rho
+                us += w * rho * us_tab[lab]
+                usk += w * rho * usk_tab[lab]
+                gx += sx * wy * wz * rho
+                gy += sy * wx * wz * rho
+                gz += sz * wx * wy * rho
+    return bone, us, usk, gx, gy, gz, swept_any
+
+
+@njit(cache=True, nogil=True)
+def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2,
+                  carved, cache, o0, o1, o2, tick):
+    """Share of the stencil's space outside the burr that no other burr position has swept
+    (see ``sample_bone``), in [0, 1]."""
+    nx, ny, nz = swept.shape
+    a_num = 0.0
+    a_den = 0.0
+    for di in range(2):
+        i = i0 + di
+        wx = tx if di == 1 else 1.0 - tx
+        in_x = 0 <= i < nx
+        dx = i * hx - cx
+        for dj in range(2):
+            j = j0 + dj
+            wy = ty if dj == 1 else 1.0 - ty
+            in_xy = in_x and 0 <= j < ny
+            dy = j * hy - cy
+            for dk in range(2):
+                k = k0 + dk
+                w = wx * wy * (tz if dk == 1 else 1.0 - tz)
+                if not (in_xy and 0 <= k < nz):
+                    a_num += w
+                    a_den += w
+                    continue
+                c = swept[i, j, k]
+                if c == 0:
+                    a_num += w
+                    a_den += w
+                    continue
+                if not carved:
+                    a_den += w
+                    a_num += w * float(255 - c) * (1.0 / 255.0)
+                    continue
+                dz = k * hz - cz
+                if dx * dx + dy * dy + dz * dz <= r_in2:
+                    continue
+                cq = cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy,
+                                     hz, r_in2, r_out2)
+                if cq == 255:
+                    continue  # wholly inside the burr: says nothing about what lies outside
+                a_den += w
+                if c <= cq:
+                    a_num += w
+                else:
+                    a_num += w * float(255 - c) / float(255 - cq)
+    if a_den <= 0.0:
+        return 0.0
+    return a_num / a_den

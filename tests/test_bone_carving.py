@@ -1,0 +1,178 @@
+"""Carving: partial-volume removal, neighbourhood only, bricks, versions, materials, events."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from burrforce.server.bone import (
+    BoneEngine,
+    BoneGrid,
+    Material,
+    MaterialTable,
+    ShaftParams,
+    workpiece_block,
+)
+from burrforce.server.bone.bricks import BRICK
+
+RPM = 60000.0
+AXIS = (0.0, 0.0, 1.0)
+STILL = (0.0, 0.0, 0.0)
+
+
+def small_block(voxel_mm: float = 0.1) -> BoneGrid:
+    return workpiece_block(voxel_mm, lo_mm=(0, 0, -4), hi_mm=(8, 8, 0), margin_mm=1.0,
+                           offset_voxels=(0.31, 0.17, 0.43))
+
+
+def engine_for(grid: BoneGrid, **kwargs) -> BoneEngine:
+    return BoneEngine(grid, shaft=ShaftParams(length_mm=0.0), **kwargs)
+
+
+def cap_volume(radius: float, depth: float) -> float:
+    return math.pi * depth * depth * (3.0 * radius - depth) / 3.0
+
+
+# Partial volume at the cap's rim (bone below, burr above-inside the same voxels) errs by
+# O(h²): shallow caps, where the rim weighs most, get the widest tolerance.
+@pytest.mark.parametrize(("depth", "tolerance"), [(0.5, 0.015), (1.3, 0.004), (2.0, 0.002),
+                                                  (3.0, 0.002)])
+def test_plunge_removes_the_spherical_cap(depth, tolerance):
+    grid = small_block()
+    engine = engine_for(grid)
+    before = grid.bone_volume_by_label_mm3()[1]
+    result = engine.step((4.0, 4.0, 2.0 - depth), AXIS, STILL, RPM)
+    expected = cap_volume(2.0, depth)
+    assert result.removed_mm3 == pytest.approx(expected, rel=tolerance)
+    assert before - grid.bone_volume_by_label_mm3()[1] == pytest.approx(result.removed_mm3,
+                                                                         rel=1e-9)
+    assert result.removed_mm3_by_material == {"cortical": pytest.approx(result.removed_mm3)}
+    assert engine.removed_mm3_by_material()["cortical"] == pytest.approx(result.removed_mm3)
+
+
+def test_cap_volume_converges_at_second_order():
+    errors = []
+    for voxel_mm in (0.2, 0.1):
+        result = engine_for(small_block(voxel_mm)).step((4.0, 4.0, 1.5), AXIS, STILL, RPM)
+        errors.append(abs(result.removed_mm3 / cap_volume(2.0, 0.5) - 1.0))
+    assert errors[1] < errors[0] / 3.0
+
+
+def test_carving_is_idempotent_and_versions_are_monotone():
+    grid = small_block()
+    engine = engine_for(grid)
+    first = engine.step((4.0, 4.0, 1.5), AXIS, STILL, RPM)
+    assert first.bone_version == 1 and first.removed_mm3 > 0
+    swept = grid.swept.copy()
+    engine.forget_last_carve()  # make it re-examine every voxel
+    again = engine.step((4.0, 4.0, 1.5), AXIS, STILL, RPM)
+    assert again.removed_mm3 == 0.0 and again.bone_version == 1
+    assert np.array_equal(grid.swept, swept)
+    moved = engine.step((4.05, 4.0, 1.5), AXIS, (50.0, 0, 0), RPM)
+    assert moved.bone_version == 2 and moved.removed_mm3 > 0
+
+
+def test_only_the_burr_neighbourhood_changes_and_changed_bricks_are_reported():
+    grid = small_block()
+    engine = engine_for(grid)
+    centre = np.array([4.0, 4.0, 1.2])
+    density_before = grid.density.copy()
+    engine.step(centre, AXIS, STILL, RPM)
+    assert np.array_equal(grid.density, density_before)  # carving never writes the original
+    changed = np.argwhere(grid.swept > 0)
+    centres = grid.origin_mm + changed * grid.spacing_mm
+    reach = 2.0 + 0.5 * math.sqrt(3) * 0.1
+    assert (np.linalg.norm(centres - centre, axis=1) <= reach + 1e-9).all()
+    bricks = {tuple(b) for b in grid.changed_bricks(0)}
+    removed_bricks = {tuple(i // BRICK) for i in np.argwhere(
+        (grid.swept > 0) & (grid.density > 0))}
+    assert bricks == removed_bricks
+    assert grid.changed_bricks(1).size == 0
+
+
+def test_brick_counts_stay_exact_while_carving():
+    grid = small_block()
+    engine = engine_for(grid)
+    for i in range(60):
+        engine.step((1.0 + 0.1 * i, 4.0, 1.0), AXIS, (100.0, 0, 0), RPM)
+    bone, full = grid.brick_bone.copy(), grid.brick_full.copy()
+    grid.recount()
+    assert np.array_equal(bone, grid.brick_bone) and np.array_equal(full, grid.brick_full)
+
+
+def test_below_cutting_speed_nothing_is_carved():
+    grid = small_block()
+    engine = engine_for(grid)
+    result = engine.step((4.0, 4.0, 1.5), AXIS, (3.0, 0, 0), 1000.0)
+    assert result.removed_mm3 == 0.0 and not grid.swept.any()
+    assert result.cut.contact and not result.cut.cutting
+    assert not result.cut.force_N.any()
+
+
+def test_removal_per_material():
+    density = np.full((60, 60, 40), 255, np.uint8)
+    labels = np.ones(density.shape, np.uint8)
+    labels[30:] = 2  # x ≥ 3 mm is the second material
+    grid = BoneGrid(density, 0.1, labels=labels)
+    table = MaterialTable({1: Material("cortical", 805.1, 1.3),
+                           2: Material("trabecular", 300.0, 1.3)})
+    engine = engine_for(grid, materials=table)
+    # Burr centred on the boundary plane between the two materials (x = 2.95 mm, between the
+    # voxel centres 2.9 and 3.0), cap 1 mm deep into the top face.
+    top = 3.95  # the top voxel layer's upper face
+    result = engine.step((2.95, 3.0, top + 1.0), AXIS, STILL, RPM)
+    half = cap_volume(2.0, 1.0) / 2
+    assert result.removed_mm3_by_material["cortical"] == pytest.approx(half, rel=0.01)
+    assert result.removed_mm3_by_material["trabecular"] == pytest.approx(half, rel=0.01)
+    expected_j = (805.1 + 300.0) * half * 1e-3
+    assert engine.removal_energy_J() == pytest.approx(expected_j, rel=0.01)
+
+
+def test_forbidden_contact_is_an_event_when_it_begins():
+    density = np.full((80, 40, 40), 255, np.uint8)
+    labels = np.ones(density.shape, np.uint8)
+    labels[40:44, 18:22, 30:34] = 9  # a small nerve, 0.6–0.9 mm below the top
+    grid = BoneGrid(density, 0.1, labels=labels)
+    table = MaterialTable({1: Material("cortical", 805.1, 1.3),
+                           9: Material("facial nerve", 50.0, 1.0, forbidden=True)})
+    engine = engine_for(grid, materials=table)
+    z = 3.95 + 2.0 - 0.8  # cap 0.8 mm deep: reaches the nerve only when above it
+    touches = []
+    for i in range(80):
+        x = 1.0 + 0.1 * i
+        result = engine.step((x, 2.0, z), AXIS, (100.0, 0, 0), RPM, time_s=i * 1e-3)
+        touches.append(result.forbidden_contact)
+    assert any(touches) and not touches[0] and not touches[-1]
+    assert len(engine.events) == 1  # one continuous contact, one event
+    event = engine.events[0]
+    assert event.label == 9 and event.material == "facial nerve"
+    assert 3.9 <= event.position_mm[0] <= 4.4 and event.time_s == touches.index(True) * 1e-3
+    # Leaving and coming back is a new contact.
+    engine.step((4.2, 2.0, z), AXIS, (-100.0, 0, 0), RPM, time_s=1.0)
+    assert len(engine.events) == 2
+
+
+@given(st.floats(0.0, 8.0), st.floats(0.0, 8.0), st.floats(-2.0, 3.0), st.floats(0.6, 2.5))
+def test_carving_invariants(x, y, z, radius):
+    grid = workpiece_block(0.2, lo_mm=(0, 0, -3), hi_mm=(8, 8, 0), margin_mm=0.5,
+                           offset_voxels=(0.31, 0.17, 0.43))
+    from burrforce.server.model import CuttingParams
+
+    engine = BoneEngine(grid, params=CuttingParams(radius_mm=radius),
+                        shaft=ShaftParams(length_mm=0.0), n_theta=8)
+    total = grid.bone_volume_by_label_mm3()[1]
+    result = engine.step((x, y, z), AXIS, (10.0, 0, 0), RPM)
+    left = grid.bone_volume_by_label_mm3()[1]
+    assert result.removed_mm3 >= 0.0
+    assert total - left == pytest.approx(result.removed_mm3, abs=1e-9)
+    assert result.removed_mm3 <= 4 / 3 * math.pi * (radius + 0.2) ** 3
+    swept = grid.swept.copy()
+    engine.step((x + 0.1, y, z), AXIS, (10.0, 0, 0), RPM)
+    assert (grid.swept >= swept).all()  # never un-carves
+    bone = grid.brick_bone.copy()
+    grid.recount()
+    assert np.array_equal(bone, grid.brick_bone)
