@@ -156,6 +156,37 @@ def test_forbidden_contact_is_an_event_when_it_begins():
     assert len(engine.events) == 2
 
 
+def test_adjacent_forbidden_structures_give_one_event_each():
+    density = np.full((80, 40, 40), 255, np.uint8)
+    labels = np.ones(density.shape, np.uint8)
+    labels[40:44, 18:22, 30:34] = 9
+    labels[44:48, 18:22, 30:34] = 10  # a vessel right beside the nerve
+    grid = BoneGrid(density, 0.1, labels=labels)
+    table = MaterialTable({1: Material("cortical", 805.1, 1.3),
+                           9: Material("facial nerve", 50.0, 1.0, forbidden=True),
+                           10: Material("sigmoid sinus", 20.0, 1.0, forbidden=True)})
+    engine = engine_for(grid, materials=table)
+    for i in range(80):
+        engine.step((1.0 + 0.1 * i, 2.0, 3.95 + 2.0 - 0.8), AXIS, (100.0, 0, 0), RPM,
+                    time_s=i * 1e-3)
+    assert sorted(e.label for e in engine.events) == [9, 10]
+    assert engine.events[0].time_s < engine.events[1].time_s
+
+
+def test_forbidden_flags_changed_later_are_honoured():
+    density = np.full((80, 40, 40), 255, np.uint8)
+    labels = np.ones(density.shape, np.uint8)
+    labels[40:44, 18:22, 30:34] = 9
+    grid = BoneGrid(density, 0.1, labels=labels)
+    table = MaterialTable({1: Material("cortical", 805.1, 1.3), 9: Material("nerve", 50.0, 1.0)})
+    engine = engine_for(grid, materials=table)
+    engine.step((1.0, 2.0, 5.15), AXIS, (100.0, 0, 0), RPM)
+    table.update(9, forbidden=True)  # flagged after the engine started
+    for i in range(1, 80):
+        engine.step((1.0 + 0.1 * i, 2.0, 5.15), AXIS, (100.0, 0, 0), RPM)
+    assert [e.label for e in engine.events] == [9]
+
+
 @given(st.floats(0.0, 8.0), st.floats(0.0, 8.0), st.floats(-2.0, 3.0), st.floats(0.6, 2.5))
 def test_carving_invariants(x, y, z, radius):
     grid = workpiece_block(0.2, lo_mm=(0, 0, -3), hi_mm=(8, 8, 0), margin_mm=0.5,
@@ -170,9 +201,10 @@ def test_carving_invariants(x, y, z, radius):
     assert result.removed_mm3 >= 0.0
     assert total - left == pytest.approx(result.removed_mm3, abs=1e-9)
     assert result.removed_mm3 <= 4 / 3 * math.pi * (radius + 0.2) ** 3
-    swept = grid.swept.copy()
-    engine.step((x + 0.1, y, z), AXIS, (10.0, 0, 0), RPM)
-    assert (grid.swept >= swept).all()  # never un-carves
+    for step in range(1, 4):
+        swept = grid.swept.copy()
+        engine.step((x + 0.1 * step, y, z), AXIS, (10.0, 0, 0), RPM)
+        assert (grid.swept >= swept).all()  # never un-carves
     bone = grid.brick_bone.copy()
     grid.recount()
     assert np.array_equal(bone, grid.brick_bone)

@@ -145,3 +145,60 @@ def test_shaft_clear_of_bone_or_off_gives_nothing():
     off = BoneEngine(grid, shaft=ShaftParams(length_mm=0.0)).step(
         (2.5, 6.0, 1.0), (0.5, 0.0, np.sqrt(0.75)), (0, 0, 0), RPM)
     assert not off.shaft_contact and not off.shaft_force_N.any()
+
+
+def steady_engine(case: CuttingCase, ticks: int = 300) -> tuple[BoneEngine, np.ndarray]:
+    """An engine whose burr has ploughed ``ticks`` ms of groove; returns it and the pose."""
+    grid = groove_block(0.1)
+    engine = BoneEngine(grid, shaft=ShaftParams(length_mm=0.0))
+    start = np.array([4.0, 6.0, 0.0]) + case.centre_mm
+    for i in range(ticks):
+        centre = start + case.feed_velocity_mm_s * i * 1e-3
+        engine.step(centre, case.axis, case.feed_velocity_mm_s, case.rpm)
+    return engine, centre
+
+
+def test_a_tick_that_does_not_carve_sees_the_same_cutting_front():
+    case = CuttingCase("parallel", 60.0)
+    engine, centre = steady_engine(case)
+    carving = engine.step(centre, case.axis, case.feed_velocity_mm_s, case.rpm)
+    looking = engine.step(centre, case.axis, case.feed_velocity_mm_s, case.rpm, carve=False)
+    assert looking.removed_mm3 == 0.0
+    assert looking.cut.force_magnitude_N == pytest.approx(carving.cut.force_magnitude_N,
+                                                          rel=0.01)
+
+
+def test_voxel_workpiece_on_carved_bone_and_custom_minimum_speed():
+    case = CuttingCase("parallel", 60.0)
+    engine, centre = steady_engine(case)
+    params = CuttingParams(min_cutting_rpm=1000.0)
+    model = CuttingModel(params, workpiece=VoxelWorkpiece(engine.grid, engine.materials))
+    at_speed = model.evaluate(centre, case.axis, case.feed_velocity_mm_s, case.rpm)
+    live = engine.step(centre, case.axis, case.feed_velocity_mm_s, case.rpm, carve=False)
+    # The model splits crossed elements 3 × 3, the engine 2 × 2.
+    assert at_speed.force_magnitude_N == pytest.approx(live.cut.force_magnitude_N, rel=1e-3)
+    slow = model.evaluate(centre, case.axis, case.feed_velocity_mm_s, 3000.0)
+    flat = CuttingModel(params).evaluate(case.centre_mm, case.axis, case.feed_velocity_mm_s,
+                                         3000.0)
+    assert slow.force_magnitude_N == pytest.approx(flat.force_magnitude_N, rel=0.03)
+
+
+def test_force_switches_on_continuously_at_first_touch():
+    grid = groove_block(0.1)
+    engine = BoneEngine(grid, shaft=ShaftParams(length_mm=0.0))
+    forces = []
+    for gap_um in range(120, -40, -5):  # lowering the burr onto the top face
+        result = engine.step((6.0, 6.0, 2.0 + gap_um * 1e-3), (0, 0, 1), (0, 0, -3.0), RPM,
+                             carve=False)
+        forces.append(result.cut.force_magnitude_N)
+    steps = np.diff(forces)
+    assert forces[0] == 0.0 and forces[-1] > 0.0
+    assert np.abs(steps).max() <= 0.25 * forces[-1]
+
+
+def test_step_rejects_bad_flags_and_times():
+    engine = BoneEngine(groove_block(0.4))
+    with pytest.raises(ValueError, match="carve"):
+        engine.step((0, 0, 0), (0, 0, 1), (0, 0, 0), RPM, carve=1)
+    with pytest.raises(ValueError, match="time_s"):
+        engine.step((0, 0, 0), (0, 0, 1), (0, 0, 0), RPM, time_s=float("nan"))

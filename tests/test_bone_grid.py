@@ -29,6 +29,16 @@ def test_workpiece_top_face_is_at_z0():
     assert column[k - 3] == 255 and column[k + 3] == 0
 
 
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"hi_mm": (np.inf, 1, 1)}, "finite"), ({"label": 300}, "label"), ({"label": 0}, "label"),
+    ({"hi_mm": (-1, 1, 1)}, "lo < hi"), ({"voxel_mm": 0.0}, "voxel_mm"),
+])
+def test_workpiece_rejects_bad_input(kwargs, message):
+    args = {"voxel_mm": 0.5, "lo_mm": (0, 0, 0), "hi_mm": (1, 1, 1), **kwargs}
+    with pytest.raises(ValueError, match=message):
+        workpiece_block(**args)
+
+
 def test_grid_frames_round_trip():
     rot = oblique_rotation()
     grid = BoneGrid(np.zeros((4, 5, 6), np.uint8), (0.1, 0.2, 0.3), origin_mm=(1, 2, 3),
@@ -96,6 +106,10 @@ def test_material_table():
         table.set(0, Material("air", 0.0, 0.0))
     with pytest.raises(ValueError, match="us_n_mm2"):
         Material("bad", -1.0, 1.0)
+    with pytest.raises(ValueError, match="us_n_mm2"):
+        Material("bad", 1e308, 1.0)
+    with pytest.raises(ValueError, match="k must"):
+        Material("bad", 1.0, 1e3)
     with pytest.raises(ValueError, match="name"):
         Material("", 1.0, 1.0)
     table.remove(7)

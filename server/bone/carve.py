@@ -23,7 +23,7 @@ N_TOUCH = 9
 @njit(cache=True, nogil=True)
 def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
                  brick_forbidden, spacing, centre, previous, radius, carve, version_next,
-                 removed, touch, cache, tick):
+                 removed, touch, touched, cache, tick):
     """Sweep the voxels a burr sphere covers (one call per tick).
 
     Raises each covered voxel's ``swept`` to its coverage (never lowers it), adds the bone
@@ -43,6 +43,8 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
             carves nothing); bricks holding forbidden labels are always checked for contact.
         radius: burr radius, mm.
         removed: float64 (256,), accumulated.  touch: float64 (N_TOUCH,), overwritten.
+        touched: float64 (256, 4): per forbidden label touched this tick, its most-covered
+            voxel's coverage (column 0; 0 = not touched) and centre (columns 1–3, grid mm).
         cache, tick: the tick's coverage cache (``voxels.cached_coverage``), filled here.
 
     Returns:
@@ -50,6 +52,8 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     """
     for n in range(N_TOUCH):
         touch[n] = 0.0
+    for n in range(touched.shape[0]):
+        touched[n, 0] = 0.0
     hx = spacing[0]
     hy = spacing[1]
     hz = spacing[2]
@@ -59,12 +63,16 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     nx, ny, nz = density.shape
     r_in2, r_out2 = sphere_reach(radius, hx, hy, hz)
     r_out = math.sqrt(r_out2)
-    i_lo = max(0, math.ceil((cx - r_out) / hx))
-    i_hi = min(nx - 1, math.floor((cx + r_out) / hx))
-    j_lo = max(0, math.ceil((cy - r_out) / hy))
-    j_hi = min(ny - 1, math.floor((cy + r_out) / hy))
-    k_lo = max(0, math.ceil((cz - r_out) / hz))
-    k_hi = min(nz - 1, math.floor((cz + r_out) / hz))
+    # The force samples voxels up to one voxel beyond the burr's coverage (the trilinear
+    # stencil): bone that close switches the force stage on, so it starts continuously.
+    near = r_out + max(hx, max(hy, hz))
+    near2 = near * near
+    i_lo = max(0, math.ceil((cx - near) / hx))
+    i_hi = min(nx - 1, math.floor((cx + near) / hx))
+    j_lo = max(0, math.ceil((cy - near) / hy))
+    j_hi = min(ny - 1, math.floor((cy + near) / hy))
+    k_lo = max(0, math.ceil((cz - near) / hz))
+    k_hi = min(nz - 1, math.floor((cz + near) / hz))
     any_removed = False
     best = -1
     visited = 0
@@ -94,9 +102,12 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                 c0 = max(bk * BRICK, k_lo)
                 c1 = min(bk * BRICK + BRICK - 1, k_hi)
                 ez = _axis_gap(cz, c0 * hz, c1 * hz)
-                if ex * ex + ey * ey + ez * ez >= r_out2:
+                gap2 = ex * ex + ey * ey + ez * ez
+                if gap2 >= near2:
                     continue
                 touch[TOUCH_NEAR_BONE] = 1.0
+                if gap2 >= r_out2:
+                    continue
                 skip_old = has_prev and brick_forbidden[bi, bj, bk] == 0
                 if skip_old and (max(qx * a0 * hx, qx * a1 * hx) + max(qy * b0 * hy, qy * b1 * hy)
                                  + max(qz * c0 * hz, qz * c1 * hz)) <= q0:
@@ -142,10 +153,16 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                                 continue
                             d = density[i, j, k]
                             if d != 0 and forbidden[labels[i, j, k]] != 0:
+                                lab = labels[i, j, k]
                                 touch[TOUCH_FORBIDDEN] += 1.0
+                                if cq > touched[lab, 0]:
+                                    touched[lab, 0] = cq
+                                    touched[lab, 1] = i * hx
+                                    touched[lab, 2] = j * hy
+                                    touched[lab, 3] = k * hz
                                 if cq > best:
                                     best = cq
-                                    touch[TOUCH_LABEL] = labels[i, j, k]
+                                    touch[TOUCH_LABEL] = lab
                                     touch[TOUCH_COVERAGE] = cq
                                     touch[TOUCH_POSITION] = i * hx
                                     touch[TOUCH_POSITION + 1] = j * hy

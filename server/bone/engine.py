@@ -19,7 +19,7 @@ from ..model.cutting import (
 from ..model.kernels import OUT_FORCE, OUT_SURFACE_NORMAL, OUT_TORQUE, new_buffer
 from ..model.params import CuttingParams
 from .bricks import forbidden_bricks
-from .carve import N_TOUCH, TOUCH_FORBIDDEN, TOUCH_LABEL, TOUCH_POSITION
+from .carve import N_TOUCH, TOUCH_FORBIDDEN, TOUCH_LABEL
 from .grid import BoneGrid, check_voxel_size
 from .materials import N_LABELS, MaterialTable
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
@@ -141,13 +141,14 @@ class BoneEngine:
         self.out = new_buffer()
         self.shaft_out = np.zeros(N_SHAFT)
         self.touch = np.zeros(N_TOUCH)
+        self._touched = np.zeros((N_LABELS, 4))
         self._removed_tick = np.zeros(N_LABELS)
         self._removed_total = np.zeros(N_LABELS)
         self.events: deque[ForbiddenContact] = deque(maxlen=max_events)
-        self._touching_label = 0
+        self._touching: frozenset[int] = frozenset()
         self.ticks = 0
         self._brick_forbidden = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
-        self._forbidden_revision = -1
+        self._forbidden_key: tuple[int, int] | None = None
 
     @property
     def params(self) -> CuttingParams:
@@ -166,6 +167,14 @@ class BoneEngine:
         # Entries are stamped with the tick that wrote them (ticks count from 1).
         self._cache = np.zeros(shape, dtype=np.int64)
         self.forget_last_carve()
+
+    def refresh_forbidden(self) -> None:
+        """Recompute which bricks hold forbidden structures (a full scan of the grid: done
+        automatically when the material table's forbidden flags change, or call it after
+        writing ``grid.labels``)."""
+        forbidden_bricks(self.grid.density, self.grid.labels, self.materials.forbidden,
+                         self._brick_forbidden)
+        self._forbidden_key = (id(self.materials), self.materials.forbidden_revision)
 
     def forget_last_carve(self) -> None:
         """Carve the burr's whole neighbourhood next tick (after the radius or the bone's
@@ -192,10 +201,9 @@ class BoneEngine:
         p = self.params
         b = self.burr
         g = self.grid
-        if self.materials.revision != self._forbidden_revision:
-            forbidden_bricks(g.density, g.labels, self.materials.forbidden,
-                             self._brick_forbidden)
-            self._forbidden_revision = self.materials.revision
+        key = (id(self.materials), self.materials.forbidden_revision)
+        if key != self._forbidden_key:
+            self.refresh_forbidden()
         omega = p.spin_sign * rpm * RPM_TO_RAD_S
         cutting = abs(rpm) >= p.min_cutting_rpm
         removed = bone_tick(
@@ -205,10 +213,10 @@ class BoneEngine:
             cutting, carve, g.density, g.swept, g.labels, self.materials.us,
             self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
             g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
-            g.version + 1, self.shaft.radius_mm,
-            self.shaft.length_mm, self.shaft.stiffness_n_mm3, self._removed_tick,
-            self._removed_total, self.touch, self._vert, self._acc, self.out, self.shaft_out,
-            self._cache, self.ticks + 1)
+            g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
+            self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
+            self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
+            self.ticks + 1)
         if removed:
             g.version += 1
         if carve and cutting:
@@ -234,6 +242,10 @@ class BoneEngine:
             ValueError: non-finite or implausible inputs (as ``CuttingModel.evaluate``).
         """
         centre, ax, feed, rpm = check_pose(centre_mm, axis, feed_mm_s, rpm)
+        if not isinstance(carve, (bool, np.bool_)):
+            raise ValueError(f"carve must be true or false, got {carve!r}")
+        if time_s is not None and not math.isfinite(time_s):
+            raise ValueError(f"time_s must be finite, got {time_s!r}")
         g = self.grid
         ax = ax / np.linalg.norm(ax)
         self.step_raw(g.to_grid_point(centre), g.to_grid_vector(ax), g.to_grid_vector(feed),
@@ -265,16 +277,18 @@ class BoneEngine:
         )
 
     def _record_contact(self, now: float) -> None:
+        """One event per forbidden label when contact with it begins (not every tick, and not
+        again while it continues, whichever neighbour is the most covered)."""
         if self.touch[TOUCH_FORBIDDEN] <= 0.0:
-            self._touching_label = 0
+            self._touching = frozenset()
             return
-        label = int(self.touch[TOUCH_LABEL])
-        if label != self._touching_label:
-            position = self.grid.to_world_point(self.touch[TOUCH_POSITION:TOUCH_POSITION + 3])
+        now_touching = frozenset(int(x) for x in np.flatnonzero(self._touched[:, 0]))
+        for label in sorted(now_touching - self._touching):
+            position = self.grid.to_world_point(self._touched[label, 1:4])
             self.events.append(ForbiddenContact(
                 now, tuple(float(x) for x in position), label,  # type: ignore[arg-type]
                 self.materials.name_of(label)))
-            self._touching_label = label
+        self._touching = now_touching
 
     # -- totals -----------------------------------------------------------------------------
     def removed_mm3_by_material(self) -> dict[str, float]:

@@ -27,7 +27,7 @@ SMOOTH_SPREAD = 0.25
 @njit(cache=True, nogil=True)
 def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
                sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
-               cutting, carved, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
+               cutting, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
                vert, acc, out, cache, tick):
     """Cutting force of the burr against the voxel bone, in the grid frame.
 
@@ -36,7 +36,6 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             cos_pv, sin_pv: (n_phi,) at the element corners.
         radius: R, mm.  centre, axis, v_feed: (3,) grid frame (mm, any-length axis, mm/s).
         omega: signed spindle speed along the axis, rad/s.  cutting: fast enough to cut.
-        carved: the burr has just carved at ``centre`` this tick (see ``sample_bone``).
         density, swept, labels: uint8 voxels; us_tab, usk_tab: (256,) Us and Us·K per label.
         brick_bone: int32 brick counts.  spacing: (3,) voxel size, mm.
         vert: float64 scratch of shape (n_theta + 1, n_phi, 3) (corner samples).
@@ -98,7 +97,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
             frac, us_f, usk_f, _, _, _ = sample_bone(
                 density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1, o2, tick)
+                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick)
             vert[j, k, 0] = frac
             vert[j, k, 1] = us_f
             vert[j, k, 2] = usk_f
@@ -164,7 +163,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                     pz = cz + radius * (n1 * e1z + n2 * e2z + ct2 * e3z)
                     frac, us_f, usk_f, gx, gy, gz = sample_bone(
                         density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
-                        hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1,
+                        hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1,
                         o2, tick)
                     if frac <= 0.0:
                         continue

@@ -45,11 +45,12 @@ class Material:
             raise ValueError(
                 f"material name must be 1..{MAX_NAME_LENGTH} printable characters, "
                 f"got {self.name!r}")
-        for field, value in (("us_n_mm2", self.us_n_mm2), ("k", self.k)):
+        # The same bounds as CuttingParams: far beyond any bone, far below overflow.
+        for field, value, upper in (("us_n_mm2", self.us_n_mm2, 1e7), ("k", self.k, 100.0)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value) or value < 0.0:
-                raise ValueError(f"material {self.name!r}: {field} must be a finite number "
-                                 f"≥ 0, got {value!r}")
+                    or not math.isfinite(value) or not 0.0 <= value <= upper:
+                raise ValueError(f"material {self.name!r}: {field} must be a number in "
+                                 f"[0, {upper:g}], got {value!r}")
         if not isinstance(self.forbidden, bool):
             raise ValueError(f"material {self.name!r}: forbidden must be true or false")
 
@@ -73,6 +74,8 @@ class MaterialTable:
         self.forbidden = np.zeros(N_LABELS, dtype=np.uint8)
         #: Bumped by every change, so users of the tables can tell they changed.
         self.revision = 0
+        #: Bumped only when some label's ``forbidden`` flag changes.
+        self.forbidden_revision = 0
         for label, material in (materials or {CORTICAL_LABEL: CORTICAL}).items():
             self.set(label, material)
 
@@ -135,6 +138,7 @@ class MaterialTable:
 
     def _refresh(self, label: int) -> None:
         self.revision += 1
+        was_forbidden = self.forbidden[label]
         material = self._by_label.get(label)
         if material is None:
             self.us[label] = self.usk[label] = 0.0
@@ -143,6 +147,8 @@ class MaterialTable:
             self.us[label] = material.us_n_mm2
             self.usk[label] = material.us_n_mm2 * material.k
             self.forbidden[label] = 1 if material.forbidden else 0
+        if self.forbidden[label] != was_forbidden:
+            self.forbidden_revision += 1
 
     def __repr__(self) -> str:
         return f"MaterialTable({dict(self)!r})"

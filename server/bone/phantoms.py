@@ -47,6 +47,12 @@ def workpiece_block(
     offset = np.asarray(offset_voxels, dtype=np.float64)
     if lo.shape != (3,) or hi.shape != (3,) or not (hi > lo).all():
         raise ValueError(f"the block needs lo < hi on every axis, got {lo_mm} and {hi_mm}")
+    if not (np.abs(np.concatenate([lo, hi])) <= 1e4).all():
+        raise ValueError(f"the block's corners must be finite and within ±1e4 mm, got {lo_mm} "
+                         f"and {hi_mm}")
+    if isinstance(label, bool) or not isinstance(label, (int, np.integer)) \
+            or not 1 <= label <= 255:
+        raise ValueError(f"label must be a material label in 1..255, got {label!r}")
     if not 0.0 <= margin_mm <= 100.0:
         raise ValueError(f"margin_mm must be in [0, 100], got {margin_mm}")
     if offset.shape != (3,) or not (np.abs(offset) <= 1.0).all():

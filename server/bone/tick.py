@@ -16,7 +16,8 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
               v_feed, omega, cutting, carve, density, swept, labels, us_tab, usk_tab,
               forbidden, brick_bone, brick_full, brick_version, brick_forbidden, spacing,
               previous, version_next,
-              shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch, vert,
+              shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch, touched,
+              vert,
               acc, out, shaft_out, cache, tick):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft.
 
@@ -34,14 +35,15 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
         removed[n] = 0.0
     removed_any = carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full,
                                brick_version, brick_forbidden, spacing, centre, previous,
-                               radius, carved, version_next, removed, touch, cache, tick)
+                               radius, carved, version_next, removed, touch, touched, cache,
+                               tick)
     if removed_any:
         for n in range(removed.shape[0]):
             removed_total[n] += removed[n]
     if touch[TOUCH_NEAR_BONE] != 0.0:
         cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
                    sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed,
-                   omega, cutting, carved, density, swept, labels, us_tab, usk_tab,
+                   omega, cutting, density, swept, labels, us_tab, usk_tab,
                    brick_bone, spacing, vert, acc, out, cache, tick)
     else:
         for n in range(N_OUT):

@@ -89,14 +89,14 @@ def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy
 
 @njit(cache=True, nogil=True)
 def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, carved, cache, o0, o1, o2, tick):
+                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick):
     """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
 
     Returns (fraction, us_fraction, usk_fraction, gx, gy, gz):
         fraction: the original density at p (0–1) times its availability — the share of the
-            space around p outside the burr that no *other* burr position has swept. Space the
-            burr at (cx, cy, cz) has itself just carved (``carved``) counts as available: it
-            was bone a moment ago, and it is what the model's elements are cutting.
+            bone around p outside the burr that no *other* burr position has swept. What the
+            burr at (cx, cy, cz) covers counts as available whether or not this tick carved it:
+            it is what the model's elements are cutting (or, below the cutting speed, touching).
         us_fraction, usk_fraction: fraction weighted by each voxel's Us, Us·K (N/mm²).
         gx, gy, gz: gradient of the original density, 1/mm (points into the bone).
 
@@ -135,7 +135,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
     scale = 1.0 / 255.0
     if swept_any:
         scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius,
-                               r_in2, r_out2, carved, cache, o0, o1, o2, tick)
+                               r_in2, r_out2, density, cache, o0, o1, o2, tick)
     return (bone * scale, us * scale, usk * scale,
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 
@@ -254,9 +254,10 @@ def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz
 
 @njit(cache=True, nogil=True)
 def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2,
-                  carved, cache, o0, o1, o2, tick):
-    """Share of the stencil's space outside the burr that no other burr position has swept
-    (see ``sample_bone``), in [0, 1]."""
+                  density, cache, o0, o1, o2, tick):
+    """Share of the stencil's bone outside the burr that no other burr position has swept
+    (see ``sample_bone``), in [0, 1]. Weighted by the original density, so air — which carving
+    does not track everywhere — has no say."""
     nx, ny, nz = swept.shape
     a_num = 0.0
     a_den = 0.0
@@ -274,17 +275,15 @@ def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius,
                 k = k0 + dk
                 w = wx * wy * (tz if dk == 1 else 1.0 - tz)
                 if not (in_xy and 0 <= k < nz):
-                    a_num += w
-                    a_den += w
                     continue
+                d = density[i, j, k]
+                if d == 0:
+                    continue
+                w *= float(d)
                 c = swept[i, j, k]
                 if c == 0:
                     a_num += w
                     a_den += w
-                    continue
-                if not carved:
-                    a_den += w
-                    a_num += w * float(255 - c) * (1.0 / 255.0)
                     continue
                 dz = k * hz - cz
                 if dx * dx + dy * dy + dz * dz <= r_in2:

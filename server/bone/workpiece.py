@@ -33,7 +33,10 @@ class VoxelWorkpiece(Workpiece):
         key = (radius_mm, grid.key)
         engine = self._engines.get(key)
         if engine is None:
-            engine = BoneEngine(self.grid, self.materials, CuttingParams(radius_mm=radius_mm),
+            # The model decides whether the spindle cuts (``cutting``); the engine must not
+            # apply a minimum speed of its own, so its minimum is the lowest allowed.
+            params = CuttingParams(radius_mm=radius_mm, min_cutting_rpm=1.0)
+            engine = BoneEngine(self.grid, self.materials, params,
                                 ShaftParams(length_mm=0.0), n_theta=grid.n_theta,
                                 n_phi=grid.n_phi, refine=grid.refine)
             self._engines = {key: engine}  # one resolution at a time
@@ -47,6 +50,8 @@ class VoxelWorkpiece(Workpiece):
         rpm = -omega_rad_s * 60.0 / (2.0 * np.pi)
         if not cutting:
             rpm = 0.0  # below the cutting speed: contact only
+        elif abs(rpm) < 1.0:
+            rpm = 1.0 if rpm >= 0.0 else -1.0
         unit = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
         engine.step_raw(g.to_grid_point(centre_mm), g.to_grid_vector(unit),
                         g.to_grid_vector(feed_mm_s), rpm, carve=False)
