@@ -15,6 +15,7 @@ from burrforce.server.bone import (
     VoxelWorkpiece,
     workpiece_block,
 )
+from burrforce.server.bone.carve import TOUCH_VISITED
 from burrforce.server.model import CuttingModel, CuttingParams, thesis_cases
 from burrforce.server.model.cases import CuttingCase
 from burrforce.server.model.reference import reference_case
@@ -77,7 +78,7 @@ def test_far_from_bone_everything_is_zero():
     result = engine.step((6.0, 6.0, 30.0), (0, 0, 1), (3.0, 0, 0), RPM)
     assert not result.cut.force_N.any() and not result.cut.contact
     assert not result.shaft_contact and result.removed_mm3 == 0.0
-    assert engine.touch[6] == 0  # no voxel examined
+    assert engine.touch[TOUCH_VISITED] == 0  # no voxel examined
 
 
 def test_spinning_without_feed_and_below_cutting_speed_touch_without_force():

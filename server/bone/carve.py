@@ -7,17 +7,14 @@ import math
 from numba import njit
 
 from .bricks import BRICK, BRICK_SHIFT
-from .voxels import CACHE_SHIFT, cache_origin, sphere_coverage, sphere_reach
+from .voxels import cache_origin, cached_coverage, sphere_reach, voxel_span
 
 # Layout of the float64 contact vector the carving kernel fills (length N_TOUCH).
 TOUCH_FORBIDDEN = 0  # forbidden voxels holding bone that the burr overlaps
-TOUCH_LABEL = 1  # label of the most-covered of them
-TOUCH_COVERAGE = 2  # its coverage, 0–255
-TOUCH_POSITION = 3  # [3:6] its centre, grid frame, mm
-TOUCH_VISITED = 6  # voxels examined (cost statistics)
-TOUCH_BRICKS = 7  # bricks whose bone changed
-TOUCH_NEAR_BONE = 8  # 1 if any brick holding bone lies within the burr's reach
-N_TOUCH = 9
+TOUCH_VISITED = 1  # voxels examined (cost statistics)
+TOUCH_BRICKS = 2  # bricks whose bone changed
+TOUCH_NEAR_BONE = 3  # 1 if any brick holding bone lies within the burr's reach
+N_TOUCH = 4
 
 
 @njit(cache=True, nogil=True)
@@ -67,18 +64,12 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     # stencil): bone that close switches the force stage on, so it starts continuously.
     near = r_out + max(hx, max(hy, hz))
     near2 = near * near
-    i_lo = max(0, math.ceil((cx - near) / hx))
-    i_hi = min(nx - 1, math.floor((cx + near) / hx))
-    j_lo = max(0, math.ceil((cy - near) / hy))
-    j_hi = min(ny - 1, math.floor((cy + near) / hy))
-    k_lo = max(0, math.ceil((cz - near) / hz))
-    k_hi = min(nz - 1, math.floor((cz + near) / hz))
+    i_lo, i_hi = voxel_span(cx - near, cx + near, hx, nx)
+    j_lo, j_hi = voxel_span(cy - near, cy + near, hy, ny)
+    k_lo, k_hi = voxel_span(cz - near, cz + near, hz, nz)
     any_removed = False
-    best = -1
     visited = 0
     o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
-    l0, l1, l2 = cache.shape
-    stamp = tick << CACHE_SHIFT
     # Half-space of points closer to ``previous`` than to ``centre``: (x − mid)·Δ ≤ 0.
     has_prev = carve and previous[0] == previous[0]
     qx = cx - previous[0] if has_prev else 0.0
@@ -139,16 +130,9 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                             if old == 255:
                                 continue  # swept through: nothing left to take or touch
                             visited += 1
-                            if inside:
-                                cq = 255
-                            else:
-                                cq = sphere_coverage(dx, dy, k * hz - cz, radius, hx, hy, hz,
-                                                     r_in2, r_out2)
-                                a = i - o0
-                                b = j - o1
-                                c = k - o2
-                                if 0 <= a < l0 and 0 <= b < l1 and 0 <= c < l2:
-                                    cache[a, b, c] = stamp | cq
+                            cq = 255 if inside else cached_coverage(
+                                cache, o0, o1, o2, tick, i, j, k, dx, dy, k * hz - cz, radius,
+                                hx, hy, hz, r_in2, r_out2)
                             if cq == 0:
                                 continue
                             d = density[i, j, k]
@@ -160,13 +144,6 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                                     touched[lab, 1] = i * hx
                                     touched[lab, 2] = j * hy
                                     touched[lab, 3] = k * hz
-                                if cq > best:
-                                    best = cq
-                                    touch[TOUCH_LABEL] = lab
-                                    touch[TOUCH_COVERAGE] = cq
-                                    touch[TOUCH_POSITION] = i * hx
-                                    touch[TOUCH_POSITION + 1] = j * hy
-                                    touch[TOUCH_POSITION + 2] = k * hz
                             if not carve or cq <= old:
                                 continue
                             swept[i, j, k] = cq

@@ -19,7 +19,7 @@ from ..model.cutting import (
 from ..model.kernels import OUT_FORCE, OUT_SURFACE_NORMAL, OUT_TORQUE, new_buffer
 from ..model.params import CuttingParams
 from .bricks import forbidden_bricks
-from .carve import N_TOUCH, TOUCH_FORBIDDEN, TOUCH_LABEL
+from .carve import N_TOUCH, TOUCH_FORBIDDEN
 from .grid import BoneGrid, check_voxel_size
 from .materials import N_LABELS, MaterialTable
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
@@ -147,6 +147,8 @@ class BoneEngine:
         self.events: deque[ForbiddenContact] = deque(maxlen=max_events)
         self._touching: frozenset[int] = frozenset()
         self.ticks = 0
+        #: Stamps the coverage cache: one per kernel call, never reused.
+        self._stamp = 0
         self._brick_forbidden = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
         self._forbidden_key: tuple[int, int] | None = None
 
@@ -164,7 +166,7 @@ class BoneEngine:
         shape = coverage_cache_shape(params.radius_mm, self.grid.spacing_mm)
         if math.prod(shape) > MAX_CACHE_ENTRIES:
             shape = (1, 1, 1)  # voxels far finer than the burr: compute every coverage
-        # Entries are stamped with the tick that wrote them (ticks count from 1).
+        # Entries are stamped with the call that wrote them (stamps count from 1).
         self._cache = np.zeros(shape, dtype=np.int64)
         self.forget_last_carve()
 
@@ -206,17 +208,18 @@ class BoneEngine:
             self.refresh_forbidden()
         omega = p.spin_sign * rpm * RPM_TO_RAD_S
         cutting = abs(rpm) >= p.min_cutting_rpm
+        self._stamp += 1
         removed = bone_tick(
             b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
             b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
-            b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g, axis_g, feed_g, omega,
+            b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g, feed_g, omega,
             cutting, carve, g.density, g.swept, g.labels, self.materials.us,
             self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
             g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
             g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
             self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
             self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
-            self.ticks + 1)
+            self._stamp)
         if removed:
             g.version += 1
         if carve and cutting:
@@ -259,9 +262,9 @@ class BoneEngine:
                 out[base:base + 3] = g.to_world_vector(out[base:base + 3])
             for base in (SHAFT_FORCE, SHAFT_TORQUE):
                 shaft[base:base + 3] = g.to_world_vector(shaft[base:base + 3])
-        scale = g.voxel_volume_mm3 / (255.0 * 255.0)
-        by_label = {int(label): float(v) * scale
+        by_label = {int(label): float(v) * self._mm3_per_unit
                     for label, v in enumerate(self._removed_tick) if v > 0.0}
+        touched = self._touched[:, 0]
         return BoneTickResult(
             cut=result_from_out(out),
             removed_mm3=sum(by_label.values()),
@@ -272,7 +275,7 @@ class BoneEngine:
             shaft_overlap_mm3=float(shaft[SHAFT_VOLUME]),
             shaft_contact=bool(shaft[SHAFT_VOLUME] > 0.0 or shaft[SHAFT_DEPTH] > 0.0),
             forbidden_contact=bool(self.touch[TOUCH_FORBIDDEN] > 0.0),
-            forbidden_label=int(self.touch[TOUCH_LABEL]),
+            forbidden_label=int(np.argmax(touched)) if touched.any() else 0,
             bone_version=g.version,
         )
 
@@ -291,16 +294,19 @@ class BoneEngine:
         self._touching = now_touching
 
     # -- totals -----------------------------------------------------------------------------
+    @property
+    def _mm3_per_unit(self) -> float:
+        """mm³ per unit of the kernels' removal counters (density × swept steps)."""
+        return self.grid.voxel_volume_mm3 / (255.0 * 255.0)
+
     def removed_mm3_by_material(self) -> dict[str, float]:
         """Bone removed since the engine was made, mm³ per material name."""
-        scale = self.grid.voxel_volume_mm3 / (255.0 * 255.0)
-        return {self.materials.name_of(label): float(v) * scale
+        return {self.materials.name_of(label): float(v) * self._mm3_per_unit
                 for label, v in enumerate(self._removed_total) if v > 0.0}
 
     def removal_energy_J(self) -> float:
         """Σ Us(material) × removed volume since the engine was made, J (N·mm → mJ)."""
-        scale = self.grid.voxel_volume_mm3 / (255.0 * 255.0)
-        return float(np.dot(self._removed_total, self.materials.us)) * scale * 1e-3
+        return float(np.dot(self._removed_total, self.materials.us)) * self._mm3_per_unit * 1e-3
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel a tick uses, without touching the

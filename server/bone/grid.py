@@ -77,7 +77,7 @@ class BoneGrid:
                       else _volume("swept", swept, shape))
         self.spacing_mm = _spacing(spacing_mm)
         self.origin_mm = _finite3("origin_mm", origin_mm, MAX_EXTENT_MM)
-        self.direction = _rotation(direction)
+        self.direction = rotation(direction)
         extent = np.asarray(shape) * self.spacing_mm
         if not (extent <= MAX_EXTENT_MM).all():
             raise ValueError(f"grid extent {extent.tolist()} mm exceeds {MAX_EXTENT_MM:g} mm")
@@ -208,7 +208,8 @@ def _finite3(name: str, value: object, limit: float) -> np.ndarray:
     return arr
 
 
-def _rotation(direction: object) -> np.ndarray:
+def rotation(direction: object) -> np.ndarray:
+    """A validated 3×3 rotation (identity for None); ValueError says what is wrong."""
     if direction is None:
         return np.eye(3)
     arr = np.array(direction, dtype=np.float64)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
-from .grid import BoneGrid
+from .grid import BoneGrid, rotation
 from .materials import CORTICAL_LABEL
+from .voxels import plane_fraction
 
 #: The workpiece block: x ∈ [0, 26] mm (a 20 mm groove plus a burr's width either side),
 #: y ∈ [−8, 8] mm, z ∈ [−8, 0] mm, flat top at z = 0 as in model.md.
@@ -39,8 +41,8 @@ def workpiece_block(
             block). An oblique grid makes every face cut voxels at an angle, as in a scan.
 
     Partial volume: exact for faces aligned with the grid; for oblique faces each face's
-    coverage is the trapezoid of the voxel's extent along its normal (as in carving), and the
-    faces' coverages multiply (exact away from edges).
+    coverage is ``voxels.plane_fraction`` (as in carving), and the faces' coverages multiply
+    (exact away from edges).
     """
     lo = np.asarray(lo_mm, dtype=np.float64)
     hi = np.asarray(hi_mm, dtype=np.float64)
@@ -60,7 +62,7 @@ def workpiece_block(
     h = float(voxel_mm)
     if not 1e-3 <= h <= 10.0:
         raise ValueError(f"voxel_mm must be in [0.001, 10], got {voxel_mm}")
-    rot = np.eye(3) if direction is None else np.asarray(direction, dtype=np.float64)
+    rot = rotation(direction)  # validated before the kernel sees it
     # The grid covers the block's bounding box in its own axes, plus the margin.
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
@@ -73,33 +75,35 @@ def workpiece_block(
     origin_grid = g_lo + (0.5 + offset) * h
     origin = rot @ origin_grid
     density = np.empty(shape, dtype=np.uint8)
-    axes = [origin_grid[a] + h * np.arange(shape[a]) for a in range(3)]
-    ys, zs = np.meshgrid(axes[1], axes[2], indexing="ij")
-    for i, x in enumerate(axes[0]):
-        # World coordinates of this slab's voxel centres, (ny, nz, 3).
-        pts = (x * rot[:, 0] + ys[..., None] * rot[:, 1] + zs[..., None] * rot[:, 2])
-        frac = np.ones(ys.shape)
-        for axis in range(3):
-            normal_grid = rot[axis]  # the world axis in grid coordinates
-            spread = 0.5 * h * np.abs(normal_grid)
-            frac *= _face_coverage(pts[..., axis] - lo[axis], spread)
-            frac *= _face_coverage(hi[axis] - pts[..., axis], spread)
-        density[i] = np.rint(frac * 255.0).astype(np.uint8)
+    _fill_block(density, origin_grid, h, rot, lo, hi)
     labels = np.where(density > 0, np.uint8(label), np.uint8(0)).astype(np.uint8)
     return BoneGrid(density, h, origin_mm=origin, direction=rot, labels=labels)
 
 
-def _face_coverage(depth: np.ndarray, spread: np.ndarray) -> np.ndarray:
-    """Share of voxels whose centres lie ``depth`` mm inside a plane, given the voxel's three
-    half-extents along its normal (``spread``): the trapezoid of ``sphere_coverage``."""
-    largest = float(spread.max())
-    big = max(largest, float(spread.sum()) - largest)
-    small = float(spread.sum()) - big
-    if small <= 1e-12 * big:
-        return np.clip(0.5 + 0.5 * depth / big, 0.0, 1.0)
-    x = depth / big
-    r = small / big
-    out = np.where(x <= r - 1.0, (x + 1.0 + r) ** 2 / (8.0 * r), 0.5 + 0.5 * x)
-    out = np.where(x >= 1.0 - r, 1.0 - (1.0 + r - x) ** 2 / (8.0 * r), out)
-    out = np.where(x <= -(1.0 + r), 0.0, out)
-    return np.where(x >= 1.0 + r, 1.0, out)
+@njit(cache=True, nogil=True)
+def _fill_block(density, origin_grid, h, rot, lo, hi):
+    """Partial-volume density (0–255) of the box [lo, hi] (world mm) in a grid of voxel size h
+    whose axes are ``rot``'s columns and whose voxel (0, 0, 0) sits at ``origin_grid`` (grid
+    mm): per face ``plane_fraction``, multiplied over the six faces."""
+    nx, ny, nz = density.shape
+    for i in range(nx):
+        gx = origin_grid[0] + h * i
+        for j in range(ny):
+            gy = origin_grid[1] + h * j
+            for k in range(nz):
+                gz = origin_grid[2] + h * k
+                frac = 1.0
+                for axis in range(3):
+                    # The world axis in grid coordinates is row ``axis`` of rot.
+                    r0 = rot[axis, 0]
+                    r1 = rot[axis, 1]
+                    r2 = rot[axis, 2]
+                    world = r0 * gx + r1 * gy + r2 * gz
+                    a = 0.5 * h * abs(r0)
+                    b = 0.5 * h * abs(r1)
+                    c = 0.5 * h * abs(r2)
+                    frac *= plane_fraction(world - lo[axis], a, b, c)
+                    frac *= plane_fraction(hi[axis] - world, a, b, c)
+                    if frac == 0.0:
+                        break
+                density[i, j, k] = int(frac * 255.0 + 0.5)

@@ -12,8 +12,8 @@ import math
 
 from numba import njit
 
-from ..model.kernels import box_fraction
 from .bricks import BRICK, BRICK_SHIFT
+from .voxels import plane_fraction, voxel_span
 
 # Layout of the float64 shaft vector (length N_SHAFT), grid frame until rotated to the world.
 SHAFT_FORCE = 0  # [0:3] force on the shaft, N
@@ -57,12 +57,9 @@ def shaft_contact(density, swept, brick_bone, spacing, centre, axis, burr_radius
           min(cz, cz + length * az) - reach)
     hi = (max(cx, cx + length * ax) + reach, max(cy, cy + length * ay) + reach,
           max(cz, cz + length * az) + reach)
-    i_lo = max(0, math.ceil(lo[0] / hx))
-    i_hi = min(nx - 1, math.floor(hi[0] / hx))
-    j_lo = max(0, math.ceil(lo[1] / hy))
-    j_hi = min(ny - 1, math.floor(hi[1] / hy))
-    k_lo = max(0, math.ceil(lo[2] / hz))
-    k_hi = min(nz - 1, math.floor(hi[2] / hz))
+    i_lo, i_hi = voxel_span(lo[0], hi[0], hx, nx)
+    j_lo, j_hi = voxel_span(lo[1], hi[1], hy, ny)
+    k_lo, k_hi = voxel_span(lo[2], hi[2], hz, nz)
     brick_half = 0.5 * BRICK * math.sqrt(hx * hx + hy * hy + hz * hz)
     for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
         a0 = max(bi * BRICK, i_lo)
@@ -109,11 +106,8 @@ def shaft_contact(density, swept, brick_bone, spacing, centre, axis, burr_radius
                             if r2 >= reach2 or r2 == 0.0:
                                 continue
                             r = math.sqrt(r2)
-                            qa = 0.5 * hx * abs(rx) / r
-                            qb = 0.5 * hy * abs(ry) / r
-                            qc = 0.5 * hz * abs(rz) / r
-                            big = max(qa, max(qb, qc))
-                            cov = box_fraction(shaft_radius - r, big, qa + qb + qc - big)
+                            cov = plane_fraction(shaft_radius - r, 0.5 * hx * abs(rx) / r,
+                                                 0.5 * hy * abs(ry) / r, 0.5 * hz * abs(rz) / r)
                             if cov <= 0.0:
                                 continue
                             vol = cov * float(d) * float(255 - s) * voxel_mm3

@@ -12,17 +12,16 @@ from .shaft import N_SHAFT, shaft_contact
 
 @njit(cache=True, nogil=True)
 def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-              sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, unit_axis,
-              v_feed, omega, cutting, carve, density, swept, labels, us_tab, usk_tab,
-              forbidden, brick_bone, brick_full, brick_version, brick_forbidden, spacing,
-              previous, version_next,
-              shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch, touched,
-              vert,
-              acc, out, shaft_out, cache, tick):
+              sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
+              cutting, carve, density, swept, labels, us_tab, usk_tab, forbidden, brick_bone,
+              brick_full, brick_version, brick_forbidden, spacing, previous, version_next,
+              shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch,
+              touched, vert, acc, out, shaft_out, cache, tick):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft.
 
-    All vectors are in the grid frame. A burr with no bone brick within reach skips the force
-    stage entirely: far from bone a tick costs a few brick lookups. See ``carve_sphere``,
+    All vectors are in the grid frame; ``axis`` is the unit tool axis. A burr with no bone
+    brick within reach skips the force stage entirely: far from bone a tick costs a few brick
+    lookups. See ``carve_sphere``,
     ``cut_voxels`` and ``shaft_contact`` for the arguments; ``removed`` receives this tick's
     removal per label and is added to ``removed_total`` (both float64 (256,), units of 255²
     voxel volumes).
@@ -49,7 +48,7 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
         for n in range(N_OUT):
             out[n] = 0.0
     if shaft_length > 0.0:
-        shaft_contact(density, swept, brick_bone, spacing, centre, unit_axis, radius,
+        shaft_contact(density, swept, brick_bone, spacing, centre, axis, radius,
                       shaft_radius, shaft_length, shaft_stiffness, shaft_out)
     else:
         for n in range(N_SHAFT):

@@ -27,15 +27,27 @@ def sphere_reach(radius, hx, hy, hz):
 
 
 @njit(cache=True, nogil=True)
+def plane_fraction(depth, a, b, c):
+    """Share of a voxel whose centre lies ``depth`` mm inside a plane, given the voxel's three
+    half-extents projected on the plane's normal: the trapezoid whose half-ranges are the
+    largest projection and the sum of the other two — exact for planes aligned with an axis,
+    symmetric about the plane always, so no volume is gained or lost on average."""
+    big = max(a, max(b, c))
+    return box_fraction(depth, big, a + b + c - big)
+
+
+@njit(cache=True, nogil=True)
+def voxel_span(lo_mm, hi_mm, h, n):
+    """First and last voxel index (of n, spacing h) whose centre lies in [lo_mm, hi_mm]."""
+    return max(0, math.ceil(lo_mm / h)), min(n - 1, math.floor(hi_mm / h))
+
+
+@njit(cache=True, nogil=True)
 def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
     """Fraction of a voxel inside a sphere, quantized to 0–255.
 
     (dx, dy, dz): voxel centre minus sphere centre, mm. Within a voxel the sphere is taken as
-    its tangent plane (the error is O(h²/R)); the covered fraction is then the distribution of
-    the voxel's extent along the normal, approximated by a trapezoid whose half-ranges are the
-    largest of the three projected half-sizes and the sum of the other two — exact for faces
-    aligned with an axis, symmetric about the surface always, so no volume is gained or lost
-    on average.
+    its tangent plane (the error is O(h²/R)), whose share is ``plane_fraction``.
     """
     d2 = dx * dx + dy * dy + dz * dz
     if d2 >= r_out2:
@@ -43,11 +55,8 @@ def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
     if d2 <= r_in2:
         return 255
     d = math.sqrt(d2)
-    a = 0.5 * hx * abs(dx) / d
-    b = 0.5 * hy * abs(dy) / d
-    c = 0.5 * hz * abs(dz) / d
-    big = max(a, max(b, c))
-    frac = box_fraction(radius - d, big, a + b + c - big)
+    frac = plane_fraction(radius - d, 0.5 * hx * abs(dx) / d, 0.5 * hy * abs(dy) / d,
+                          0.5 * hz * abs(dz) / d)
     return int(frac * 255.0 + 0.5)
 
 

@@ -27,19 +27,21 @@ class VoxelWorkpiece(Workpiece):
     def __init__(self, grid: BoneGrid, materials: MaterialTable | None = None) -> None:
         self.grid = grid
         self.materials = materials if materials is not None else MaterialTable()
-        self._engines: dict[tuple[float, tuple[int, int, int]], BoneEngine] = {}
+        self._engine_key: tuple[float, tuple[int, int, int]] | None = None
+        self._engine_for_key: BoneEngine | None = None
 
     def _engine(self, grid: BurrGrid, radius_mm: float) -> BoneEngine:
+        """The engine for this burr radius and resolution (one at a time)."""
         key = (radius_mm, grid.key)
-        engine = self._engines.get(key)
-        if engine is None:
+        engine = self._engine_for_key
+        if engine is None or key != self._engine_key:
             # The model decides whether the spindle cuts (``cutting``); the engine must not
             # apply a minimum speed of its own, so its minimum is the lowest allowed.
             params = CuttingParams(radius_mm=radius_mm, min_cutting_rpm=1.0)
             engine = BoneEngine(self.grid, self.materials, params,
                                 ShaftParams(length_mm=0.0), n_theta=grid.n_theta,
                                 n_phi=grid.n_phi, refine=grid.refine)
-            self._engines = {key: engine}  # one resolution at a time
+            self._engine_key, self._engine_for_key = key, engine
         return engine
 
     def cut(self, grid, radius_mm, centre_mm, axis, feed_mm_s, omega_rad_s, us_n_mm2, k,
