@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..model.params import THESIS_K, THESIS_US_N_MM2
+from .hounsfield import CORTICAL_HU, TRABECULAR_HU
 
 N_LABELS = 256
 EMPTY_LABEL = 0
@@ -57,6 +58,24 @@ class Material:
 
 #: The thesis's synthetic cortical bone (chapter III calibration).
 CORTICAL = Material("cortical", THESIS_US_N_MM2, THESIS_K)
+
+
+def _trabecular_us() -> float:
+    """NOT MEASURED: the thesis calibrated cortical bone only. Us is scaled from cortical by
+    the ratio of the two HU presets' mid-points (CT number is roughly proportional to
+    apparent mineral density): 404.5 / 1325 × 805.1 ≈ 245.8 N/mm². Calibrate it on your
+    own recordings (``burrforce calibrate``) before trusting trabecular forces."""
+    mid = sum(TRABECULAR_HU) / 2.0 / (sum(CORTICAL_HU) / 2.0)
+    return round(THESIS_US_N_MM2 * mid, 1)
+
+
+#: Cancellous bone; Us is an assumption (see :func:`_trabecular_us`), K the cortical one.
+TRABECULAR = Material("trabecular", _trabecular_us(), THESIS_K)
+#: A nerve (a critical structure): soft tissue, which a burr cuts with no resistance worth
+#: rendering next to bone; touching it is what matters, so it is forbidden.
+NERVE = Material("nerve", 0.0, 0.0, forbidden=True)
+#: Built-in materials by name: a materials file can name them without repeating Us and K.
+BUILTIN_MATERIALS = {m.name: m for m in (CORTICAL, TRABECULAR, NERVE)}
 
 
 class MaterialTable:

@@ -1,0 +1,106 @@
+"""burrforce's own bone format, ``.bone.npz``: everything a session needs, compressed.
+
+A NumPy ``.npz`` (a zip of ``.npy`` arrays, deflated) holding:
+
+- ``burrforce_bone``: int64 [format version];
+- ``density``, ``labels``, ``swept``: uint8 (nx, ny, nz) — the grid's three bytes per voxel;
+- ``spacing_mm`` (3,), ``origin_mm`` (3,), ``direction`` (3, 3): float64 geometry;
+- ``materials``: UTF-8 JSON bytes, a list of {label, name, us_n_mm2, k, forbidden};
+- ``meta``: UTF-8 JSON bytes: name, format, kind, notes, bone_version.
+
+Any NumPy can read it (``np.load``); mostly-empty volumes compress to a few percent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..bone import Bone
+from ..grid import BoneGrid
+from ..materials import Material, MaterialTable
+from .errors import BoneFileError
+from .npy_member import MAX_META_ELEMENTS, read_member
+
+BONE_SUFFIX = ".bone.npz"
+FORMAT_KEY = "burrforce_bone"
+FORMAT_VERSION = 1
+
+
+def save_bone(bone: Bone, path: str | Path) -> Path:
+    """Write ``bone`` to ``path`` (``.bone.npz`` is appended if missing). The file appears
+    whole or not at all: it is written beside the target and renamed."""
+    path = Path(path)
+    if not path.name.lower().endswith(BONE_SUFFIX):
+        path = path.with_name(path.name + BONE_SUFFIX)
+    grid = bone.grid
+    materials = [{"label": label, "name": m.name, "us_n_mm2": m.us_n_mm2, "k": m.k,
+                  "forbidden": m.forbidden} for label, m in bone.materials]
+    meta = {"name": bone.name, "format": bone.format, "kind": bone.kind,
+            "notes": bone.notes, "bone_version": grid.version}
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=".burrforce-", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(
+                f,
+                **{FORMAT_KEY: np.array([FORMAT_VERSION], dtype=np.int64)},
+                density=grid.density, labels=grid.labels, swept=grid.swept,
+                spacing_mm=grid.spacing_mm, origin_mm=grid.origin_mm,
+                direction=grid.direction,
+                materials=_json_bytes(materials), meta=_json_bytes(meta))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def is_compact(archive: zipfile.ZipFile) -> bool:
+    return FORMAT_KEY + ".npy" in archive.namelist()
+
+
+def read_compact(path: Path, archive: zipfile.ZipFile, max_voxels: int) -> Bone:
+    """A bone from an open ``.bone.npz``."""
+    version = read_member(path, archive, FORMAT_KEY, 16)
+    if version.shape != (1,) or int(version[0]) != FORMAT_VERSION:
+        raise BoneFileError(path, f"format version {version.tolist()} is not "
+                                  f"{FORMAT_VERSION}: written by another burrforce")
+    missing = {k + ".npy" for k in ("density", "labels", "swept", "spacing_mm", "origin_mm",
+                                    "direction", "materials", "meta")} - set(archive.namelist())
+    if missing:
+        raise BoneFileError(path, f"missing arrays: {sorted(m[:-4] for m in missing)}")
+    arrays = {k: read_member(path, archive, k, max_voxels)
+              for k in ("density", "labels", "swept")}
+    meta_arrays = {k: read_member(path, archive, k, MAX_META_ELEMENTS)
+                   for k in ("spacing_mm", "origin_mm", "direction", "materials", "meta")}
+    try:
+        materials = json.loads(_text(meta_arrays["materials"]))
+        meta = json.loads(_text(meta_arrays["meta"]))
+        table = MaterialTable({int(m["label"]): Material(m["name"], m["us_n_mm2"], m["k"],
+                                                         m["forbidden"])
+                               for m in materials})
+        grid = BoneGrid(arrays["density"], meta_arrays["spacing_mm"],
+                        origin_mm=meta_arrays["origin_mm"], direction=meta_arrays["direction"],
+                        labels=arrays["labels"], swept=arrays["swept"])
+        grid.version = int(meta.get("bone_version", 0))
+        notes = [str(n) for n in meta.get("notes", [])]
+    except (ValueError, TypeError, KeyError) as exc:  # JSONDecodeError is a ValueError
+        raise BoneFileError(path, f"not a valid burrforce bone: {exc}") from None
+    return Bone(grid, table, name=str(meta.get("name") or path), format="bone",
+                kind=str(meta.get("kind", "")), notes=notes)
+
+
+def _json_bytes(value: object) -> np.ndarray:
+    return np.frombuffer(json.dumps(value).encode("utf-8"), dtype=np.uint8)
+
+
+def _text(array: np.ndarray) -> str:
+    if array.dtype != np.uint8 or array.ndim != 1:
+        raise ValueError("metadata must be UTF-8 bytes")
+    return array.tobytes().decode("utf-8")
