@@ -133,6 +133,12 @@ def _run_experiment(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_bone(sub: argparse._SubParsersAction) -> None:
+    from . import cli_bone
+
+    cli_bone.add_parser(sub)
+
+
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
@@ -151,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"burrforce {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_experiment(sub)
+    _add_bone(sub)
     _add_bench(sub)
     return parser
 

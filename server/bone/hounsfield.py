@@ -71,7 +71,7 @@ class CTMapping:
     def __post_init__(self) -> None:
         if not self.bands:
             raise ValueError("a CT mapping needs at least one HU band")
-        for lower, upper in zip(self.bands, self.bands[1:]):
+        for lower, upper in zip(self.bands, self.bands[1:], strict=False):
             if upper.min_hu <= lower.max_hu:
                 raise ValueError(f"HU bands {lower.material!r} ({lower.min_hu:g}–"
                                  f"{lower.max_hu:g}) and {upper.material!r} ({upper.min_hu:g}–"

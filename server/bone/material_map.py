@@ -190,6 +190,14 @@ class MaterialMap:
         label_of_material = {m.name: i + 1 for i, m in enumerate(used)}
         return {v: label_of_material[m.name] for v, m in chosen.items()}, table
 
+    def is_forbidden(self, value: int, segment: Segment | None) -> bool:
+        """Whether label ``value`` (with what the file says about it) maps to a forbidden
+        material — so a reader can let critical structures win where segments overlap."""
+        rule = self._rule_for(value, segment)
+        if rule is None and self.unlisted not in ("own", "error"):
+            return self.material(self.unlisted).forbidden
+        return rule is not None and rule.material.forbidden
+
     def ct_table(self) -> tuple[list[int], MaterialTable]:
         """The table for a CT volume (the bands' materials, in the file's order) and each
         band's label."""

@@ -106,7 +106,7 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
         else:
             density = _density(data)
             if labels_in is not None:
-                label_density, labels, table = _labels_to_bone(labels_in, raw, options)
+                _, labels, table = _labels_to_bone(labels_in, raw, options)
                 labels = np.where(density > 0, labels, np.uint8(0))
             else:
                 table, labels = _single_material(density, options)
@@ -134,7 +134,10 @@ def _detect_kind(data: np.ndarray) -> tuple[str, str]:
         return "ct", f"values {lo:g}..{hi:g} are not fractions or labels"
     if lo < 0.0 or hi > 255.0:
         return "ct", f"integer values {lo:g}..{hi:g} (HU)"
-    distinct = int(np.count_nonzero(_histogram(data, int(lo), int(hi) - int(lo) + 1)))
+    counts = _histogram(data, int(lo), int(hi) - int(lo) + 1)
+    distinct = int(np.count_nonzero(counts))
+    if hi == 255.0 and np.count_nonzero(counts[1 - int(lo):-1]) == 0:
+        return "density", "a 0/255 mask"
     if distinct <= MAX_AUTO_LABELS:
         return "labels", f"{distinct} distinct integer values in 0..255"
     return "density", f"{distinct} distinct values in 0..255"

@@ -100,4 +100,4 @@ def to_lps(origin: np.ndarray, direction: np.ndarray, frame: str) -> tuple[np.nd
                                                                            np.ndarray]:
     """Origin (3,) and direction (3, 3) given in patient ``frame`` (LPS, RAS, …) → LPS."""
     sign = np.asarray(TO_LPS[frame])
-    return origin * sign, direction * sign[:, None]
+    return origin * sign + 0.0, direction * sign[:, None] + 0.0  # + 0.0: no −0 in reports

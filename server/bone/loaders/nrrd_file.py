@@ -1,0 +1,147 @@
+"""NRRD volumes (``.nrrd``, ``.nhdr``) with pynrrd, including 3D Slicer ``.seg.nrrd``."""
+
+from __future__ import annotations
+
+import re
+import zlib
+from pathlib import Path
+
+import nrrd
+import numpy as np
+
+from ..material_map import Segment
+from .convert import LoadOptions, check_size
+from .errors import BoneFileError
+from .geometry import from_axes, mm_per_unit, to_lps
+from .volume import Progress, RawVolume
+
+#: NRRD ``space`` values → the patient frame to convert from (None: taken as given).
+SPACES = {
+    "left-posterior-superior": "LPS", "lps": "LPS",
+    "right-anterior-superior": "RAS", "ras": "RAS",
+    "left-anterior-superior": "LAS", "las": "LAS",
+    "scanner-xyz": None, "3d-right-handed": None,
+}
+_SEGMENT_KEY = re.compile(r"^Segment(\d+)_ID$")
+
+
+def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> RawVolume:
+    """A NRRD volume, or a 3D Slicer segmentation (3-D label map or 4-D layers)."""
+    with open(path, "rb") as fh:
+        try:
+            header = nrrd.read_header(fh)
+        except (nrrd.NRRDError, ValueError, TypeError, UnicodeDecodeError) as exc:
+            raise BoneFileError(path, f"not a valid NRRD header: {exc}") from None
+        sizes = tuple(int(s) for s in header.get("sizes", ()))
+        segments = _segments(path, header)
+        layered = len(sizes) == 4 and bool(segments)
+        check_size(path, sizes[1:] if layered else sizes, options)
+        if progress is not None:
+            progress("reading", 0, 1)
+        try:
+            data = nrrd.read_data(header, fh, filename=str(path), index_order="F")
+        except (nrrd.NRRDError, ValueError, EOFError, zlib.error, OSError) as exc:
+            raise BoneFileError(path, f"the voxel data is damaged or truncated: "
+                                      f"{exc}") from None
+    if progress is not None:
+        progress("reading", 1, 1)
+    if tuple(data.shape) != sizes:
+        raise BoneFileError(path, f"the data has shape {data.shape}, the header says {sizes}")
+    spatial = slice(1, 4) if layered else slice(0, 3)
+    spacing, origin, direction, notes = _geometry(path, header, spatial, options)
+    if not segments:
+        return RawVolume(path, "nrrd", data, spacing, origin, direction, notes=notes)
+    values = _combine_segments(path, data if layered else data[None], segments, options)
+    return RawVolume(path, "nrrd", values, spacing, origin, direction, kind="labels",
+                     segments={i + 1: s for i, (s, _, _) in enumerate(segments)}, notes=notes)
+
+
+def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):
+    notes: list[str] = []
+    if "space directions" in header:
+        rows = np.asarray(header["space directions"], dtype=np.float64)[spatial]
+        if rows.shape != (3, 3) or not np.isfinite(rows).all():
+            raise BoneFileError(path, "space directions must give three spatial axes in 3-D "
+                                      f"space, got {rows.tolist()}")
+        axes = rows.T
+    elif "spacings" in header:
+        spacing = np.asarray(header["spacings"], dtype=np.float64)[spatial]
+        if spacing.shape != (3,) or not np.isfinite(spacing).all():
+            raise BoneFileError(path, f"spacings must give three numbers, got {spacing}")
+        axes = np.diag(spacing)
+        notes.append("no space directions: axes taken as the world axes")
+    elif options.spacing_mm is not None:
+        axes = np.diag(np.broadcast_to(np.asarray(options.spacing_mm, dtype=float), (3,)))
+    else:
+        raise BoneFileError(path, "no voxel size in the header (space directions or "
+                                  "spacings): give spacing_mm")
+    origin = np.asarray(header.get("space origin", np.zeros(3)), dtype=np.float64)
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise BoneFileError(path, f"space origin must be 3 finite numbers, got {origin}")
+    units = header.get("space units")
+    if units:
+        scales = {mm_per_unit(path, u) for u in units}
+        if len(scales) != 1:
+            raise BoneFileError(path, f"mixed space units {units}")
+        scale = scales.pop()
+        axes, origin = axes * scale, origin * scale
+        if scale != 1.0:
+            notes.append(f"converted from {units[0]} to mm")
+    else:
+        notes.append("no space units: millimetres assumed")
+    space = str(header.get("space", "")).strip().lower()
+    if space:
+        if space not in SPACES:
+            raise BoneFileError(path, f"unsupported NRRD space {header['space']!r} (known: "
+                                      f"{', '.join(k for k in SPACES if len(k) > 3)})")
+        frame = SPACES[space]
+        if frame is not None:
+            spacing, direction = from_axes(path, axes)
+            origin, direction = to_lps(origin, direction, frame)
+            if frame != "LPS":
+                notes.append(f"converted from {frame} to LPS")
+            return spacing, origin, direction, notes
+    spacing, direction = from_axes(path, axes)
+    return spacing, origin, direction, notes
+
+
+def _segments(path: Path, header: dict) -> list[tuple[Segment, int, int]]:
+    """(segment, layer, label value) per 3D Slicer segment, in segment order."""
+    indices = sorted(int(m.group(1)) for k in header if (m := _SEGMENT_KEY.match(k)))
+    found = []
+    for i in indices:
+        prefix = f"Segment{i}_"
+        name = str(header.get(prefix + "Name", f"Segment {i}"))
+        try:
+            layer = int(header.get(prefix + "Layer", 0))
+            value = int(header.get(prefix + "LabelValue", 1))
+            color = None
+            if prefix + "Color" in header:
+                rgb = [float(c) for c in str(header[prefix + "Color"]).split()]
+                if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+                    raise ValueError(f"colour {header[prefix + 'Color']!r}")
+                color = tuple(round(c * 255) for c in rgb)
+        except ValueError as exc:
+            raise BoneFileError(path, f"segment {i} ({name!r}) has a bad field: {exc}") from None
+        found.append((Segment(name, color), layer, value))
+    return found
+
+
+def _combine_segments(
+    path: Path, layers: np.ndarray, segments: list[tuple[Segment, int, int]], options: LoadOptions,
+) -> np.ndarray:
+    """One label volume (segment s → value s + 1) from the layers. Where segments overlap
+    the later one wins, and forbidden ones win over all: a nerve inside a filled bone segment
+    must stay a nerve."""
+    n_layers = layers.shape[0]
+    dtype = np.uint8 if len(segments) < 255 else np.uint16
+    values = np.zeros(layers.shape[1:], dtype=dtype)
+    order = sorted(range(len(segments)),
+                   key=lambda s: options.materials.is_forbidden(s + 1, segments[s][0]))
+    for s in order:
+        segment, layer, value = segments[s]
+        if not 0 <= layer < n_layers:
+            raise BoneFileError(path, f"segment {segment.name!r} is on layer {layer}, but "
+                                      f"there are {n_layers} layers")
+        values[layers[layer] == value] = s + 1
+    return values

@@ -1,0 +1,115 @@
+"""PNG slice stacks: a folder of ``*.png``, one slice per file, spacing from the caller.
+
+The layout volumetric_drilling (AMBF) uses: slice k is the k-th file in natural order
+(``plane2.png`` before ``plane10.png``), and pixel (row r, column c) of a slice is voxel
+(r, c, k). Grayscale slices (8 or 16 bit) are values for the converter (density, labels or CT
+by their kind); RGB(A) slices are segmentations: alpha (or any non-black colour) is occupancy
+and each colour is a segment, matched to materials by the materials file's ``colors``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..material_map import Segment
+from .convert import LoadOptions, check_size
+from .errors import BoneFileError
+from .volume import Progress, RawVolume
+
+_GRAY_MODES = {"L": np.uint8, "I;16": np.uint16, "I;16B": np.uint16, "I": np.int32,
+               "1": np.uint8}
+_COLOUR_MODES = ("RGB", "RGBA", "P", "LA")
+
+
+def natural_key(path: Path) -> list:
+    return [int(part) if part.isdigit() else part.lower()
+            for part in re.split(r"(\d+)", path.name)]
+
+
+def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) -> RawVolume:
+    if not path.is_dir():
+        raise BoneFileError(path, "a PNG stack is read from its folder: give the folder")
+    files = sorted((p for p in path.iterdir() if p.suffix.lower() == ".png"
+                    and not p.name.startswith(".")), key=natural_key)
+    if not files:
+        raise BoneFileError(path, "no .png files in the folder")
+    if options.spacing_mm is None:
+        raise BoneFileError(path, "PNG slices carry no voxel size: give spacing_mm "
+                                  "(--spacing-mm)")
+    first = _open(files[0])
+    width, height = first.size
+    mode = first.mode
+    check_size(path, (height, width, len(files)), options)
+    colour = mode in _COLOUR_MODES
+    if not colour and mode not in _GRAY_MODES:
+        raise BoneFileError(files[0], f"unsupported PNG mode {mode}")
+    n = len(files)
+    if colour:
+        occupancy = np.empty((height, width, n), dtype=np.uint8)
+        values = np.empty((height, width, n), dtype=np.uint8)
+        palette: dict[int, int] = {}
+    else:
+        data = np.empty((height, width, n), dtype=_GRAY_MODES[mode])
+    for k, file in enumerate(files):
+        image = first if k == 0 else _open(file)
+        if image.size != (width, height) or (image.mode in _COLOUR_MODES) != colour:
+            raise BoneFileError(file, f"{image.size[0]}×{image.size[1]} {image.mode} differs "
+                                      f"from the first slice's {width}×{height} {mode}")
+        try:
+            if colour:
+                occupancy[:, :, k], values[:, :, k] = _segment_slice(file, image, palette)
+            else:
+                data[:, :, k] = np.asarray(image, dtype=_GRAY_MODES[mode])
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise BoneFileError(file, f"the image data is damaged or truncated: {exc}") from None
+        if progress is not None:
+            progress("reading", k + 1, n)
+    spacing = np.asarray(options.spacing_mm, dtype=np.float64)
+    origin = np.asarray(options.origin_mm if options.origin_mm is not None else (0, 0, 0),
+                        dtype=np.float64)
+    notes = [f"{n} PNG slices in natural file-name order; identity orientation"]
+    if not colour:
+        return RawVolume(path, "png", data, spacing, origin, np.eye(3), notes=notes)
+    segments = {v: Segment(color=((key >> 16) & 255, (key >> 8) & 255, key & 255))
+                for key, v in palette.items()}
+    return RawVolume(path, "png", occupancy, spacing, origin, np.eye(3), kind="density",
+                     labels=values, segments=segments, notes=notes)
+
+
+def _open(file: Path) -> Image.Image:
+    try:
+        image = Image.open(file)
+        image.load()
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError,
+            Image.DecompressionBombError) as exc:
+        raise BoneFileError(file, f"not a readable PNG: {exc}") from None
+    return image
+
+
+def _segment_slice(file: Path, image: Image.Image, palette: dict[int, int]):
+    """(occupancy uint8, colour index uint8) of one colour slice; new colours join
+    ``palette`` (packed 0xRRGGBB → index 1..255)."""
+    rgba = np.asarray(image.convert("RGBA"))
+    rgb = rgba[..., :3].astype(np.uint32)
+    packed = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+    alpha = rgba[..., 3]
+    # RGB slices (alpha all 255) mark empty space black; RGBA ones by alpha 0.
+    occupancy = np.where(packed > 0, alpha, 0).astype(np.uint8) if image.mode in ("RGB", "P") \
+        else alpha.copy()
+    occupied = occupancy > 0
+    keys = np.unique(packed[occupied])
+    lut = np.zeros(keys.shape, dtype=np.uint8)
+    for i, key in enumerate(keys.tolist()):
+        if key not in palette:
+            if len(palette) >= 255:
+                raise ValueError("more than 255 colours: not a segmentation")
+            palette[key] = len(palette) + 1
+        lut[i] = palette[key]
+    values = np.zeros(packed.shape, dtype=np.uint8)
+    if keys.size:
+        values[occupied] = lut[np.searchsorted(keys, packed[occupied])]
+    return occupancy, values
