@@ -126,7 +126,6 @@ class MaterialMap:
         rules = [_rule(name, table) for name, table in tables.items()]
         if len(rules) > N_LABELS - 1:
             raise ValueError(f"{len(rules)} materials; at most {N_LABELS - 1} fit")
-        names = [r.material.name for r in rules]
         by_name = {r.material.name: r.material for r in rules}
         ct = _ct_mapping(data.get("ct", {}), by_name)
         # Band materials not listed under [materials] are built-ins; add them.
@@ -135,21 +134,29 @@ class MaterialMap:
                 rules.append(MaterialRule(BUILTIN_MATERIALS[band.material]))
                 by_name[band.material] = BUILTIN_MATERIALS[band.material]
         unlisted = data.get("unlisted", "own")
+        if isinstance(unlisted, str) and unlisted not in by_name \
+                and unlisted in BUILTIN_MATERIALS:
+            rules.append(MaterialRule(BUILTIN_MATERIALS[unlisted]))
+            by_name[unlisted] = BUILTIN_MATERIALS[unlisted]
         if not isinstance(unlisted, str) or (unlisted not in ("own", "error")
-                                             and unlisted not in names):
-            raise ValueError(f"unlisted must be 'own', 'error' or a listed material's name, "
+                                             and unlisted not in by_name):
+            raise ValueError(f"unlisted must be 'own', 'error' or a material's name, "
                              f"got {unlisted!r}")
         _check_unique_selectors(rules)
         return cls(tuple(rules), unlisted, ct, source)
 
     def assign(
         self, values: list[int], segments: Mapping[int, Segment] | None = None,
+        match_values: bool = True,
     ) -> tuple[dict[int, int], MaterialTable]:
         """Material labels for the label values present in a volume.
 
         Args:
             values: the distinct non-zero label values in the volume.
             segments: what the file says about each value (names, colours).
+            match_values: whether the values are the file's own label values (a label map),
+                which ``labels`` rules may name; False when a reader numbered segments or
+                colours itself.
 
         Returns:
             ``(label_of_value, table)``: each value's material label (1..255) and a table of
@@ -162,7 +169,7 @@ class MaterialMap:
         chosen: dict[int, Material] = {}
         orphans: list[int] = []
         for value in values:
-            rule = self._rule_for(value, segments.get(value))
+            rule = self._rule_for(value if match_values else None, segments.get(value))
             if rule is not None:
                 chosen[value] = rule.material
             elif self.unlisted == "own":
@@ -193,7 +200,7 @@ class MaterialMap:
     def is_forbidden(self, value: int, segment: Segment | None) -> bool:
         """Whether label ``value`` (with what the file says about it) maps to a forbidden
         material — so a reader can let critical structures win where segments overlap."""
-        rule = self._rule_for(value, segment)
+        rule = self._rule_for(None, segment)
         if rule is None and self.unlisted not in ("own", "error"):
             return self.material(self.unlisted).forbidden
         return rule is not None and rule.material.forbidden
@@ -208,9 +215,9 @@ class MaterialMap:
         table = MaterialTable({i + 1: self.material(n) for i, n in enumerate(names)})
         return [names.index(b.material) + 1 for b in self.ct.bands], table
 
-    def _rule_for(self, value: int, segment: Segment | None) -> MaterialRule | None:
+    def _rule_for(self, value: int | None, segment: Segment | None) -> MaterialRule | None:
         for rule in self.rules:
-            if value in rule.labels:
+            if value is not None and value in rule.labels:
                 return rule
             if segment is not None:
                 if segment.name and segment.name.strip().lower() in rule.segments:

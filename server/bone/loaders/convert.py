@@ -187,7 +187,8 @@ def _labels_to_bone(values: np.ndarray, raw: RawVolume, options: LoadOptions):
         raise ValueError(f"label values span {lo:g}..{hi:g}, too wide for a label map")
     counts = _histogram(values, int(lo), span)
     present = [int(lo) + i for i in np.flatnonzero(counts).tolist() if int(lo) + i != 0]
-    label_of, table = options.materials.assign(present, raw.segments)
+    label_of, table = options.materials.assign(present, raw.segments,
+                                               match_values=not raw.numbered_by_reader)
     lut = np.zeros(span, dtype=np.uint8)
     for value, label in label_of.items():
         lut[value - int(lo)] = label

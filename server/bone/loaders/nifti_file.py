@@ -48,7 +48,10 @@ def read_nifti(path: Path, options: LoadOptions, progress: Progress | None) -> R
         scale = mm_per_unit(path, {"meter": "m", "micron": "um"}.get(unit, unit))
         if scale != 1.0:
             notes.append(f"converted from {unit} to mm")
-    affine = np.asarray(image.affine, dtype=np.float64)
+    # The header stores float32: take each value's shortest decimal (0.2, not 0.2000000030),
+    # which is what the writer meant whenever it wrote a decimal.
+    affine = np.array([float(np.format_float_positional(np.float32(v), unique=True))
+                       for v in np.asarray(image.affine).ravel()]).reshape(4, 4)
     spacing, direction = from_axes(path, affine[:3, :3] * scale)
     origin, direction = to_lps(affine[:3, 3] * scale, direction, "RAS")
     notes.append("converted from RAS to LPS")

@@ -53,7 +53,8 @@ def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> Ra
         return RawVolume(path, "nrrd", data, spacing, origin, direction, notes=notes)
     values = _combine_segments(path, data if layered else data[None], segments, options)
     return RawVolume(path, "nrrd", values, spacing, origin, direction, kind="labels",
-                     segments={i + 1: s for i, (s, _, _) in enumerate(segments)}, notes=notes)
+                     segments={i + 1: s for i, (s, _, _) in enumerate(segments)},
+                     numbered_by_reader=True, notes=notes)
 
 
 def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):

@@ -77,7 +77,7 @@ def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) 
     segments = {v: Segment(color=((key >> 16) & 255, (key >> 8) & 255, key & 255))
                 for key, v in palette.items()}
     return RawVolume(path, "png", occupancy, spacing, origin, np.eye(3), kind="density",
-                     labels=values, segments=segments, notes=notes)
+                     labels=values, segments=segments, numbered_by_reader=True, notes=notes)
 
 
 def _open(file: Path) -> Image.Image:

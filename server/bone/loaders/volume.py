@@ -34,6 +34,9 @@ class RawVolume:
         kind: what the file says the values are, one of KINDS.
         segments: what the file says about label values (segment names, colours).
         labels: (nx, ny, nz) label values beside a density volume (npz), or None.
+        numbered_by_reader: the label values are the reader's own numbering of segments or
+            colours (seg.nrrd, colour PNGs), not the file's: materials match them by name or
+            colour only.
         notes: assumptions made while reading.
     """
 
@@ -46,4 +49,5 @@ class RawVolume:
     kind: str = "auto"
     segments: dict[int, Segment] = field(default_factory=dict)
     labels: np.ndarray | None = None
+    numbered_by_reader: bool = False
     notes: list[str] = field(default_factory=list)
