@@ -215,20 +215,21 @@ def _classify(file: Path, ds: pydicom.Dataset, forced: bool, has_pixels: bool) -
             return "not an image (no pixel data)"
     series_uid = _text(ds, "SeriesInstanceUID")
     if not has_pixels and not series_uid:
-        # Cut off before its series was even named: it may be a slice of any series.
-        raise BoneFileError(file, "a DICOM image without pixel data (is the file truncated?)")
+        # Truncated before its series was named, or a stray object: it cannot be matched to a
+        # series. A lost slice of the loaded one is still caught by the step check.
+        return "an image without pixel data or series (truncated?)"
 
     item = _Slice(path=file, forced=forced, series_uid=series_uid)
     try:
-        _fill(item, ds, has_pixels)
+        skip = _fill(item, ds, has_pixels)
     except MemoryError:
         raise
     except Exception as exc:  # values are decoded on access; bad ones raise assorted types
         if forced:
             return "not DICOM"
-        item.problem = f"a malformed DICOM header: {exc}"
-    if item.problem is None and not item.enhanced and item.position_mm is None:
-        return "an image without ImagePositionPatient"
+        skip, item.problem = None, f"a malformed DICOM header: {exc}"
+    if skip is not None:
+        return skip
     if not series_uid:
         if item.problem is not None:
             raise BoneFileError(file, item.problem)
@@ -267,8 +268,9 @@ def _read_header(file: Path) -> tuple[pydicom.Dataset, bool, bool]:
     return ds, forced, has_pixels
 
 
-def _fill(item: _Slice, ds: pydicom.Dataset, has_pixels: bool) -> None:
-    """Copy what the series needs from ``ds`` into ``item``; ValueError etc. for bad values."""
+def _fill(item: _Slice, ds: pydicom.Dataset, has_pixels: bool) -> str | None:
+    """Copy what the series needs from ``ds`` into ``item``, or say why the file is not a slice
+    (a str). Bad values raise (ValueError and others)."""
     item.modality = _text(ds, "Modality")
     item.description = _text(ds, "SeriesDescription")
     number = ds.get("SeriesNumber")
@@ -281,17 +283,18 @@ def _fill(item: _Slice, ds: pydicom.Dataset, has_pixels: bool) -> None:
         or "SharedFunctionalGroupsSequence" in ds
     if not has_pixels:
         item.problem = "no pixel data (is the file truncated?)"
-        return
-    if "Rows" not in ds or "Columns" not in ds:
-        item.problem = "pixel data without Rows and Columns"
-        return
-    item.rows, item.cols = int(ds.Rows), int(ds.Columns)
-    if item.enhanced:
-        return  # refused as a whole when its series is chosen
+        return None
+    if not item.enhanced and "ImagePositionPatient" not in ds:
+        return "an image without ImagePositionPatient"  # a screenshot, scanned document...
     samples = int(ds.get("SamplesPerPixel", 1) or 1)
     if samples != 1:
-        item.problem = f"{samples} samples per pixel (a colour image, not a CT slice)"
-        return
+        return "a colour image"  # a secondary capture or report, not a CT slice
+    if "Rows" not in ds or "Columns" not in ds:
+        item.problem = "pixel data without Rows and Columns"
+        return None
+    item.rows, item.cols = int(ds.Rows), int(ds.Columns)
+    if item.enhanced:
+        return None  # refused as a whole if its series is chosen
     item.position_mm = _numbers(ds, "ImagePositionPatient", 3)
     item.orientation = _numbers(ds, "ImageOrientationPatient", 6)
     item.pixel_spacing_mm = _numbers(ds, "PixelSpacing", 2)
@@ -300,12 +303,13 @@ def _fill(item: _Slice, ds: pydicom.Dataset, has_pixels: bool) -> None:
     slope, intercept = ds.get("RescaleSlope"), ds.get("RescaleIntercept")
     if slope in (None, "") and "ModalityLUTSequence" in ds:
         item.problem = "a Modality LUT Sequence instead of RescaleSlope/Intercept (not supported)"
-        return
+        return None
     item.slope = float(slope) if slope not in (None, "") else 1.0
     item.intercept = float(intercept) if intercept not in (None, "") else 0.0
     if not (np.isfinite(item.slope) and np.isfinite(item.intercept)) or item.slope == 0.0:
         item.problem = (f"RescaleSlope {item.slope:g} and RescaleIntercept "
                         f"{item.intercept:g} do not map pixels to values")
+    return None
 
 
 def _text(ds: pydicom.Dataset, keyword: str) -> str:
