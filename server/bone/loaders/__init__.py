@@ -113,15 +113,20 @@ def load_bone(
 
 
 def _folder_format(path: Path) -> str:
-    files = [p for p in path.iterdir() if p.is_file() and not p.name.startswith(".")]
+    entries = [p for p in path.iterdir() if not p.name.startswith(".")]
+    files = [p for p in entries if p.is_file()]
     if not files:
+        if entries:
+            raise BoneFileError(path, "the folder holds only sub-folders: point at the folder "
+                                      "of one series or one PNG stack")
         raise BoneFileError(path, "the folder is empty")
-    if any(p.suffix.lower() == ".png" for p in files):
-        return "png"
+    # DICOM first: a series folder may hold a stray thumbnail, a PNG stack never holds DICOM.
     for p in files:
         if p.suffix.lower() == ".dcm":
             return "dicom"
         with open(p, "rb") as f:
             if f.read(132)[128:132] == b"DICM":
                 return "dicom"
+    if any(p.suffix.lower() == ".png" for p in files):
+        return "png"
     raise BoneFileError(path, "the folder holds neither PNG slices nor DICOM files")

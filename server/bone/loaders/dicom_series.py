@@ -112,7 +112,7 @@ def read_dicom_series(path: Path, options: LoadOptions, progress: Progress | Non
         raise BoneFileError(path, "no such file or folder")
 
     slices, skipped = _scan_folder(folder, chosen_file)
-    series_uid = _choose_series(path, slices, skipped, chosen_file, options.series_uid)
+    series_uid = _choose_series(path, slices, chosen_file, options.series_uid)
     members = [s for s in slices if s.series_uid == series_uid]
     first = _check_members(members)
 
@@ -201,6 +201,7 @@ def _scan_file(file: Path) -> _Slice | str:
 
 
 def _classify(file: Path, ds: pydicom.Dataset, forced: bool, has_pixels: bool) -> _Slice | str:
+    """A header read without error → a _Slice (perhaps with a problem) or a reason to skip."""
     meta = getattr(ds, "file_meta", None)
     meta_class = str(meta.get("MediaStorageSOPClassUID", "")) if meta is not None else ""
     sop_class = _text(ds, "SOPClassUID") or meta_class
@@ -298,6 +299,9 @@ def _fill(item: _Slice, ds: pydicom.Dataset, has_pixels: bool) -> str | None:
     item.position_mm = _numbers(ds, "ImagePositionPatient", 3)
     item.orientation = _numbers(ds, "ImageOrientationPatient", 6)
     item.pixel_spacing_mm = _numbers(ds, "PixelSpacing", 2)
+    if item.pixel_spacing_mm is not None and not (item.pixel_spacing_mm > 0.0).all():
+        item.problem = f"PixelSpacing {item.pixel_spacing_mm.tolist()} is not positive"
+        return None
     item.thickness_mm = _positive(ds, "SliceThickness")
     item.spacing_between_mm = _positive(ds, "SpacingBetweenSlices")
     slope, intercept = ds.get("RescaleSlope"), ds.get("RescaleIntercept")
@@ -343,9 +347,9 @@ def _positive(ds: pydicom.Dataset, keyword: str) -> float | None:
 
 
 def _choose_series(
-    path: Path, slices: list[_Slice], skipped: Counter, chosen_file: Path | None,
-    wanted: str | None,
+    path: Path, slices: list[_Slice], chosen_file: Path | None, wanted: str | None,
 ) -> str:
+    """The UID of the series to load: the chosen file's, the one asked for, or the only one."""
     uids = {s.series_uid for s in slices}
     if chosen_file is not None:
         uid = next(s.series_uid for s in slices if s.path.samefile(chosen_file))
@@ -538,21 +542,20 @@ def _read_hu(ordered: list[_Slice], shape: tuple[int, int, int],
     # Start as int16 when that can be exact; widen to float32 (exact for these integers) the
     # moment a slice does not fit, rather than holding a wide copy of the whole volume.
     data = np.empty(shape, dtype=np.int16 if integral else np.float32)
-    n = len(ordered)
     for k, s in enumerate(ordered):
         pixels = _read_pixels(s)
-        if data.dtype == np.int16:
-            if np.issubdtype(pixels.dtype, np.integer):
-                hu = pixels.astype(np.int64) * int(s.slope) + int(s.intercept)
-                if hu.min() >= INT16_MIN and hu.max() <= INT16_MAX:
-                    data[:, :, k] = hu.T
-                    if progress is not None:
-                        progress("reading", k + 1, n)
-                    continue
-            data = data.astype(np.float32)
-        data[:, :, k] = (pixels.astype(np.float64) * s.slope + s.intercept).T
+        hu = None
+        if data.dtype == np.int16 and np.issubdtype(pixels.dtype, np.integer):
+            hu = pixels.astype(np.int64) * int(s.slope) + int(s.intercept)
+            if hu.min() < INT16_MIN or hu.max() > INT16_MAX:
+                hu = None
+        if hu is None:
+            if data.dtype == np.int16:
+                data = data.astype(np.float32)
+            hu = pixels.astype(np.float64) * s.slope + s.intercept
+        data[:, :, k] = hu.T  # pixel (row j, column i) → data[i, j, k]
         if progress is not None:
-            progress("reading", k + 1, n)
+            progress("reading", k + 1, len(ordered))
     return data
 
 
