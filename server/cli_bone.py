@@ -29,9 +29,12 @@ def _triple(text: str) -> tuple[float, float, float]:
 
 
 def _add_load_options(p: argparse.ArgumentParser) -> None:
+    from .bone.phantoms import PHANTOMS
+
     p.add_argument("path", metavar="PATH",
                    help=f"a bone file or folder ({', '.join(FORMATS)}), or "
-                        f"{PHANTOM_PREFIX}NAME for a built-in phantom")
+                        f"{PHANTOM_PREFIX}NAME for a built-in phantom "
+                        f"({', '.join(PHANTOMS)})")
     p.add_argument("--kind", choices=KINDS, default="auto",
                    help="what the voxel values are: ct (HU), labels, density (0–255 or "
                         "fractions). Default auto (from the file and its values)")
@@ -76,6 +79,8 @@ def load_from_args(args: argparse.Namespace) -> Bone:
     if text.startswith(PHANTOM_PREFIX):
         from .bone.phantoms import phantom
         return phantom(text[len(PHANTOM_PREFIX):], args.voxel_mm)
+    if args.voxel_mm is not None:
+        raise ValueError("--voxel-mm sets a phantom's voxel size; for a file use --spacing-mm")
     materials = MaterialMap.from_file(args.materials) if args.materials else MaterialMap()
     options = LoadOptions(kind=args.kind, spacing_mm=args.spacing_mm, origin_mm=args.origin_mm,
                           materials=materials, material=args.material, series_uid=args.series)

@@ -20,7 +20,7 @@ from burrforce.server.bone.loaders import (
 )
 from burrforce.server.bone.material_map import MaterialMap
 from burrforce.server.bone.materials import CORTICAL, NERVE, TRABECULAR, MaterialTable
-from burrforce.server.bone.phantoms import workpiece_block
+from burrforce.server.bone.phantoms import phantom, workpiece_block
 
 VOXEL_MM = 0.4
 
@@ -163,27 +163,44 @@ def test_compact_format_round_trips_everything(bone, tmp_path):
         bone.grid.swept[...] = 0
 
 
-def test_every_format_agrees_within_one_percent(bone, materials_file, tmp_path):
-    """The issue's criterion: a known phantom in every format loads to the same volumes."""
+@pytest.fixture(scope="module")
+def temporal():
+    return phantom("temporal", 0.4)
+
+
+def test_every_format_agrees_within_one_percent(temporal, tmp_path):
+    """The issue's criterion: a known phantom (the temporal bone, three materials, a
+    forbidden nerve) written by each format's library loads to the same volumes within 1 %.
+    Label maps and CTs keep the voxels at least half bone, so they differ from the
+    partial-volume reference by the surface's rounding, not by the loader."""
+    bone = temporal
+    materials_file = tmp_path / "materials.toml"
+    materials_file.write_text(bone_files.materials_toml(bone))
     options = LoadOptions(materials=MaterialMap.from_file(materials_file))
+    spacing = LoadOptions(materials=options.materials, spacing_mm=tuple(bone.grid.spacing_mm))
     reference = bone.volumes_mm3()
     loaded = {
         "bone": load_bone(save_bone(bone, tmp_path / "b")),
         "npz": load_bone(bone_files.write_npz(bone, tmp_path / "b.npz"), options),
+        "npy": load_bone(bone_files.write_npy(bone, tmp_path / "b.npy"), spacing),
         "nrrd": load_bone(bone_files.write_nrrd_labels(bone, tmp_path / "b.nrrd"), options),
+        "nrrd ct": load_bone(bone_files.write_nrrd_ct(bone, tmp_path / "ct.nrrd")),
         "seg.nrrd": load_bone(bone_files.write_seg_nrrd(bone, tmp_path / "b.seg.nrrd"), options),
         "nifti": load_bone(bone_files.write_nifti_labels(bone, tmp_path / "b.nii.gz"), options),
-        "png": load_bone(bone_files.write_png_stack(bone, tmp_path / "png"),
-                         LoadOptions(materials=options.materials,
-                                     spacing_mm=tuple(bone.grid.spacing_mm))),
+        "nifti ct": load_bone(bone_files.write_nifti_ct(bone, tmp_path / "ct.nii.gz")),
+        "png": load_bone(bone_files.write_png_stack(bone, tmp_path / "png"), spacing),
         "dicom": load_bone(bone_files.write_dicom_ct(bone, tmp_path / "dcm")),
     }
     for fmt, result in loaded.items():
         volumes = result.volumes_mm3()
+        if fmt == "npy":  # one array, one material: the total
+            assert sum(volumes.values()) == pytest.approx(sum(reference.values()), rel=1e-9)
+            continue
         for name, volume in reference.items():
-            if fmt == "dicom" and name == "nerve":
-                continue
-            assert volumes[name] == pytest.approx(volume, rel=0.01), (fmt, name)
+            if "ct" in fmt or fmt == "dicom":
+                if name == "nerve":  # soft tissue: not bone in a CT
+                    continue
+            assert volumes[name] == pytest.approx(volume, rel=0.01), (fmt, name, volumes)
 
 
 # -- geometry conventions -------------------------------------------------------------------

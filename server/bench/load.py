@@ -159,7 +159,17 @@ def child() -> None:
 
 
 def _peak_rss_mb(resource) -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kB
+    """This process's peak resident memory, MB. VmHWM, not getrusage's ru_maxrss: Linux keeps
+    ru_maxrss across fork + exec, so a child would report its parent's (the parent holds the
+    512³ bone) peak."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
 def render_markdown(rows: list[LoadRow], command: str) -> str:

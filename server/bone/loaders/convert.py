@@ -86,9 +86,15 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
             labels_in = np.flip(labels_in, axis=0)
         notes.append("the file's grid is left-handed: its first axis was flipped (the voxels "
                      "keep their positions)")
+    # The kernels walk the voxels as one flat run, and the grid keeps C order: copy a
+    # Fortran-ordered (NRRD, NIfTI) or flipped source once here, before it becomes bytes.
+    data = np.ascontiguousarray(data)
+    if labels_in is not None:
+        labels_in = np.ascontiguousarray(labels_in)
+    stats = _Stats(data)
     kind = raw.kind if options.kind == "auto" else options.kind
     if kind == "auto":
-        kind, why = _detect_kind(data)
+        kind, why = _detect_kind(data, stats)
         notes.append(f"read as {kind}: {why} (override with kind)")
     def report(done: int, total: int) -> None:
         if progress is not None:
@@ -102,11 +108,11 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
             density, labels = ct_to_bone(data, options.materials.ct, np.array(band_labels),
                                          report)
         elif kind == "labels":
-            density, labels, table = _labels_to_bone(data, raw, options)
+            density, labels, table = _labels_to_bone(data, stats, raw, options)
         else:
-            density = _density(data)
+            density = _density(data, stats)
             if labels_in is not None:
-                _, labels, table = _labels_to_bone(labels_in, raw, options)
+                _, labels, table = _labels_to_bone(labels_in, _Stats(labels_in), raw, options)
                 labels = np.where(density > 0, labels, np.uint8(0))
             else:
                 table, labels = _single_material(density, options)
@@ -120,12 +126,48 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
     return Bone(grid, table, name=str(path), format=raw.format, kind=kind, notes=notes)
 
 
-def _detect_kind(data: np.ndarray) -> tuple[str, str]:
+class _Stats:
+    """A volume's value range and histogram, each computed once, when first asked for."""
+
+    def __init__(self, data: np.ndarray) -> None:
+        self.data = data
+        self._summary: tuple[float, float, bool, bool] | None = None
+        self._counts: np.ndarray | None = None
+
+    def scan(self) -> tuple[float, float, bool, bool]:
+        """(min, max, all integers, all finite) over the finite values."""
+        if self._summary is None:
+            data = self.data
+            if data.dtype == np.bool_:
+                data = data.view(np.uint8)
+            if np.issubdtype(data.dtype, np.integer):  # NumPy's min/max are vectorized
+                self._summary = (float(data.min()), float(data.max()), True, True)
+            else:
+                self._summary = _scan(data.reshape(-1))
+        return self._summary
+
+    def summary(self) -> tuple[float, float, bool]:
+        """(min, max, all integers); ValueError for NaN or ±Inf."""
+        lo, hi, integral, finite = self.scan()
+        if not finite:
+            raise ValueError("the volume holds NaN or infinite values")
+        return lo, hi, integral
+
+    def counts(self) -> np.ndarray:
+        """Voxels per integer value from min to max (int64)."""
+        if self._counts is None:
+            lo, hi, _ = self.summary()
+            data = self.data.view(np.uint8) if self.data.dtype == np.bool_ else self.data
+            self._counts = _histogram(data.reshape(-1), int(lo), int(hi) - int(lo) + 1)
+        return self._counts
+
+
+def _detect_kind(data: np.ndarray, stats: _Stats) -> tuple[str, str]:
     if data.dtype == np.bool_:
         return "density", "a boolean mask"
     if not np.issubdtype(data.dtype, np.number):
         return "density", f"{data.dtype} values"
-    lo, hi, integral, finite = _scan(data)
+    lo, hi, integral, finite = stats.scan()
     if not finite:
         return "ct", "non-finite values (NaN or Inf are read as not bone)"
     if not integral:
@@ -134,7 +176,7 @@ def _detect_kind(data: np.ndarray) -> tuple[str, str]:
         return "ct", f"values {lo:g}..{hi:g} are not fractions or labels"
     if lo < 0.0 or hi > 255.0:
         return "ct", f"integer values {lo:g}..{hi:g} (HU)"
-    counts = _histogram(data, int(lo), int(hi) - int(lo) + 1)
+    counts = stats.counts()
     distinct = int(np.count_nonzero(counts))
     if hi == 255.0 and np.count_nonzero(counts[1 - int(lo):-1]) == 0:
         return "density", "a 0/255 mask"
@@ -143,14 +185,14 @@ def _detect_kind(data: np.ndarray) -> tuple[str, str]:
     return "density", f"{distinct} distinct values in 0..255"
 
 
-def _density(data: np.ndarray) -> np.ndarray:
+def _density(data: np.ndarray, stats: _Stats) -> np.ndarray:
     if data.dtype == np.uint8:
-        return np.ascontiguousarray(data)
+        return data
     if data.dtype == np.bool_:
         return np.where(data, np.uint8(255), np.uint8(0))
     if not np.issubdtype(data.dtype, np.number):
         raise ValueError(f"density values must be numbers, got {data.dtype}")
-    lo, hi, integral = _summary(data)
+    lo, hi, integral = stats.summary()
     if np.issubdtype(data.dtype, np.floating) and lo >= 0.0 and hi <= 1.0:
         return np.rint(data * 255.0).astype(np.uint8)
     if integral and lo >= 0.0 and hi <= 255.0:
@@ -173,19 +215,19 @@ def _single_material(density: np.ndarray, options: LoadOptions) -> tuple[Materia
     return MaterialTable({1: material}), labels
 
 
-def _labels_to_bone(values: np.ndarray, raw: RawVolume, options: LoadOptions):
+def _labels_to_bone(values: np.ndarray, stats: _Stats, raw: RawVolume, options: LoadOptions):
     if values.dtype == np.bool_:
         values = values.view(np.uint8)
     if not np.issubdtype(values.dtype, np.number):
         raise ValueError(f"label values must be integers, got {values.dtype}")
-    lo, hi, integral = _summary(values)
+    lo, hi, integral = stats.summary()
     if not integral:
         raise ValueError("a label map must hold integers (found fractional or non-finite "
                          "values); read it with kind 'ct' or 'density' instead")
     span = int(hi) - int(lo) + 1
     if span > MAX_LABEL_SPAN:
         raise ValueError(f"label values span {lo:g}..{hi:g}, too wide for a label map")
-    counts = _histogram(values, int(lo), span)
+    counts = stats.counts()
     present = [int(lo) + i for i in np.flatnonzero(counts).tolist() if int(lo) + i != 0]
     label_of, table = options.materials.assign(present, raw.segments,
                                                match_values=not raw.numbered_by_reader)
@@ -194,26 +236,19 @@ def _labels_to_bone(values: np.ndarray, raw: RawVolume, options: LoadOptions):
         lut[value - int(lo)] = label
     density = np.empty(values.shape, dtype=np.uint8)
     labels = np.empty(values.shape, dtype=np.uint8)
-    _apply_lut(values, int(lo), lut, density, labels)
+    _apply_lut(values.reshape(-1), int(lo), lut, density.reshape(-1), labels.reshape(-1))
     return density, labels, table
-
-
-def _summary(values: np.ndarray) -> tuple[float, float, bool]:
-    """(min, max, all integers) of a numeric volume; ValueError for NaN or ±Inf."""
-    lo, hi, integral, finite = _scan(values)
-    if not finite:
-        raise ValueError("the volume holds NaN or infinite values")
-    return lo, hi, integral
 
 
 @njit(cache=True, nogil=True)
 def _scan(values):
+    """(min, max, all integers, all finite) of a flat float array, over its finite values."""
     lo = np.inf
     hi = -np.inf
     integral = True
     finite = True
-    for v in values.flat:
-        x = float(v)
+    for n in range(values.shape[0]):
+        x = float(values[n])
         if not np.isfinite(x):
             finite = False
             continue
@@ -229,17 +264,15 @@ def _scan(values):
 @njit(cache=True, nogil=True)
 def _histogram(values, lo, span):
     counts = np.zeros(span, dtype=np.int64)
-    for v in values.flat:
-        counts[int(v) - lo] += 1
+    for n in range(values.shape[0]):
+        counts[int(values[n]) - lo] += 1
     return counts
 
 
 @njit(cache=True, nogil=True)
 def _apply_lut(values, lo, lut, density, labels):
-    nx, ny, nz = values.shape
-    for i in range(nx):
-        for j in range(ny):
-            for k in range(nz):
-                label = lut[int(values[i, j, k]) - lo]
-                labels[i, j, k] = label
-                density[i, j, k] = 255 if label != 0 else 0
+    """Flat arrays: each value's label from ``lut``; density 255 where it has one."""
+    for n in range(values.shape[0]):
+        label = lut[int(values[n]) - lo]
+        labels[n] = label
+        density[n] = 255 if label != 0 else 0

@@ -101,15 +101,16 @@ def _segment_slice(file: Path, image: Image.Image, palette: dict[int, int]):
     occupancy = np.where(packed > 0, alpha, 0).astype(np.uint8) if image.mode in ("RGB", "P") \
         else alpha.copy()
     occupied = occupancy > 0
-    keys = np.unique(packed[occupied])
-    lut = np.zeros(keys.shape, dtype=np.uint8)
-    for i, key in enumerate(keys.tolist()):
-        if key not in palette:
+    values = np.zeros(packed.shape, dtype=np.uint8)
+    # A segmentation has a handful of colours: one comparison per known colour beats sorting
+    # every pixel (np.unique) on every slice.
+    for key, index in palette.items():
+        values[occupied & (packed == key)] = index
+    new = occupied & (values == 0)
+    if new.any():
+        for key in np.unique(packed[new]).tolist():
             if len(palette) >= 255:
                 raise ValueError("more than 255 colours: not a segmentation")
             palette[key] = len(palette) + 1
-        lut[i] = palette[key]
-    values = np.zeros(packed.shape, dtype=np.uint8)
-    if keys.size:
-        values[occupied] = lut[np.searchsorted(keys, packed[occupied])]
+            values[new & (packed == key)] = palette[key]
     return occupancy, values
