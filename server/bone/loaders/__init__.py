@@ -110,6 +110,12 @@ def load_bone(
         raise BoneFileError(path, "not enough memory to load it") from None
     except (OSError, EOFError) as exc:
         raise BoneFileError(path, f"cannot read it: {exc}") from None
+    except Exception as exc:
+        # The format libraries meet corrupt bytes with any exception (zlib.error,
+        # StopIteration, NotImplementedError, struct.error, …): at this edge every one of them
+        # means the file is damaged. The type stays in the message for diagnosis.
+        raise BoneFileError(path, f"damaged or not a valid {fmt} file "
+                                  f"({type(exc).__name__}: {exc})") from exc
 
 
 def _folder_format(path: Path) -> str:
