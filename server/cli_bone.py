@@ -102,9 +102,8 @@ class _ProgressBar:
             self._stage = stage
             self._bar = tqdm(total=total, desc=stage, unit="slice", file=sys.stderr,
                              disable=None, leave=False)
-        if self._bar is not None:
-            self._bar.n = done
-            self._bar.refresh()
+        if self._bar is not None and done > self._bar.n:
+            self._bar.update(done - self._bar.n)  # redraws at most every 0.1 s
 
     def close(self) -> None:
         if self._bar is not None:
