@@ -431,3 +431,141 @@ def test_detect_format(tmp_path, bone):
     assert detect_format(dicom) == "dicom"
     shutil.copy(next(dicom.iterdir()), tmp_path / "noext")
     assert detect_format(tmp_path / "noext") == "dicom"
+
+
+# -- files other tools write (not our writers) --------------------------------------------------
+def _seg_header(segments: dict[int, dict[str, str]], layered: bool) -> dict:
+    spatial = np.eye(3) * 0.5
+    header = {"space": "left-posterior-superior",
+              "space directions": np.vstack([np.full(3, np.nan), spatial]) if layered
+              else spatial}
+    if layered:
+        header["kinds"] = ["list", "domain", "domain", "domain"]
+    for i, fields in segments.items():
+        header[f"Segment{i}_ID"] = f"Segment_{i}"
+        header.update({f"Segment{i}_{k}": v for k, v in fields.items()})
+    return header
+
+
+def test_legacy_seg_nrrd_puts_each_segment_on_its_own_layer(tmp_path):
+    """Older 3D Slicer writes one layer per segment with no Layer or LabelValue fields."""
+    import nrrd
+    layers = np.zeros((3, 4, 4, 4), dtype=np.uint8)
+    layers[0, :2] = 1  # 32 voxels
+    layers[1, 2:, :1] = 1  # 8 voxels
+    layers[2, 3, 3] = 1  # 4 voxels
+    names = {0: {"Name": "Bone"}, 1: {"Name": "Nerve"}, 2: {"Name": "Other"}}
+    nrrd.write(str(tmp_path / "old.seg.nrrd"), layers, _seg_header(names, layered=True))
+    bone = load_bone(tmp_path / "old.seg.nrrd")
+    assert bone.volumes_mm3() == pytest.approx({"Bone": 4.0, "nerve": 1.0, "Other": 0.5})
+    # A segment named after a built-in material is that material: the nerve is forbidden.
+    assert bone.materials[bone.materials.label_of("nerve")].forbidden
+    # A collapsed (3-D) file whose segments lack LabelValue cannot be told apart: an error.
+    nrrd.write(str(tmp_path / "flat.seg.nrrd"), layers[0] + 2 * layers[1],
+               _seg_header({0: {"Name": "Bone"}, 1: {"Name": "Nerve"}}, layered=False))
+    with pytest.raises(BoneFileError, match="both value 1 on layer 0"):
+        load_bone(tmp_path / "flat.seg.nrrd")
+
+
+def test_utf8_segment_names_match_the_materials_file(tmp_path):
+    import nrrd
+    values = np.zeros((4, 4, 4), dtype=np.uint8)
+    values[0] = 1
+    values[1] = 2
+    name = "Nervus facialis (VII) – rechts é"
+    segments = {0: {"Name": "Knochen", "LabelValue": "1", "Layer": "0"},
+                1: {"Name": "PLACEHOLDER", "LabelValue": "2", "Layer": "0"}}
+    path = tmp_path / "utf8.seg.nrrd"
+    nrrd.write(str(path), values, _seg_header(segments, layered=False))
+    # pynrrd writes ASCII headers: put the UTF-8 name in, as 3D Slicer writes it.
+    head, sep, body = path.read_bytes().partition(b"\n\n")
+    path.write_bytes(head.replace(b"PLACEHOLDER", name.encode("utf-8")) + sep + body)
+    mapping = tmp_path / "m.toml"
+    mapping.write_text(f'unlisted = "error"\n[materials.nerve]\nsegments = ["{name}"]\n'
+                       '[materials.cortical]\nsegments = ["knochen"]\n', encoding="utf-8")
+    bone = load_bone(path, LoadOptions(materials=MaterialMap.from_file(mapping)))
+    assert bone.volumes_mm3() == pytest.approx({"cortical": 2.0, "nerve": 2.0})
+
+
+@pytest.mark.parametrize("encoding,compress", [("bzip2", "bz2"), ("gzip", "gzip")])
+def test_compressed_nrrd_that_inflates_past_its_header_is_refused(encoding, compress, tmp_path):
+    import importlib
+    header = (f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: {encoding}\n"
+              "space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\n").encode()
+    bomb = importlib.import_module(compress).compress(b"\0" * 50_000_000)  # 50 MB in a few kB
+    (tmp_path / "bomb.nrrd").write_bytes(header + bomb)
+    with pytest.raises(BoneFileError, match="inflates past the 8 bytes"):
+        load_bone(tmp_path / "bomb.nrrd")
+
+
+def test_big_endian_and_half_precision_values(tmp_path):
+    import nrrd
+    hu = np.full((4, 4, 4), -1000, dtype=">i2")
+    hu[:2] = 1300
+    nrrd.write(str(tmp_path / "be.nrrd"), hu, {"space": "LPS", "space directions": np.eye(3),
+                                               "endian": "big"})
+    assert load_bone(tmp_path / "be.nrrd").volumes_mm3() == pytest.approx(
+        {"cortical": 32.0, "trabecular": 0.0})
+    np.savez(tmp_path / "half.npz", density=np.full((2, 2, 2), 0.5, dtype=np.float16),
+             spacing_mm=[1.0])
+    assert load_bone(tmp_path / "half.npz").volumes_mm3() == pytest.approx(
+        {"cortical": 8 * 128 / 255})
+
+
+def test_rounded_oblique_directions_are_accepted(tmp_path):
+    import nrrd
+    rot = _rotation((31.0, -17.0, 52.0))
+    rounded = np.round(rot, 5)  # five decimals, as many writers print them
+    nrrd.write(str(tmp_path / "oblique.nrrd"), np.ones((3, 3, 3), dtype=np.uint8),
+               {"space": "LPS", "space directions": (rounded * 0.25).T})
+    bone = load_bone(tmp_path / "oblique.nrrd", LoadOptions(kind="labels"))
+    np.testing.assert_allclose(bone.grid.direction, rot, atol=1e-4)
+    np.testing.assert_allclose(bone.grid.spacing_mm, 0.25, rtol=1e-4)
+
+
+def test_nifti_without_orientation_says_so(tmp_path):
+    import nibabel as nib
+    image = nib.Nifti1Image(np.ones((3, 3, 3), dtype=np.uint8), None)  # codes stay 0
+    image.header.set_zooms((0.5, 0.5, 0.5))
+    nib.save(image, tmp_path / "noorient.nii")
+    bone = load_bone(tmp_path / "noorient.nii", LoadOptions(kind="labels"))
+    assert any("no orientation" in note for note in bone.notes)
+    np.testing.assert_allclose(bone.grid.spacing_mm, 0.5)
+
+
+def test_png_slices_of_different_bit_depths_are_refused(tmp_path):
+    from PIL import Image
+    Image.fromarray(np.zeros((4, 4), dtype=np.uint8), mode="L").save(tmp_path / "s0.png")
+    Image.fromarray(np.full((4, 4), 300, dtype=np.uint16)).save(tmp_path / "s1.png")
+    with pytest.raises(BoneFileError, match="differs from the first slice"):
+        load_bone(tmp_path, LoadOptions(spacing_mm=(1, 1, 1)))
+
+
+def test_bone_without_a_label_is_an_error(tmp_path):
+    density = np.full((2, 2, 2), 255, dtype=np.uint8)
+    labels = np.ones((2, 2, 2), dtype=np.uint8)
+    labels[0, 0, 0] = 0
+    np.savez(tmp_path / "b.npz", density=density, labels=labels, spacing_mm=[1.0])
+    with pytest.raises(BoneFileError, match="1 voxels hold bone but have label 0"):
+        load_bone(tmp_path / "b.npz")
+
+
+def test_hu_between_separate_bands_is_not_bone(tmp_path):
+    mapping = tmp_path / "gap.toml"
+    mapping.write_text("[ct]\nbands = [{material = 'trabecular', min_hu = 148, max_hu = 661},"
+                       " {material = 'cortical', min_hu = 700, max_hu = 1988}]\n")
+    hu = np.array([600, 661, 661.5, 680, 699, 700], dtype=np.float32).reshape(-1, 1, 1)
+    np.savez(tmp_path / "ct.npz", hu=hu, spacing_mm=[1.0])
+    bone = load_bone(tmp_path / "ct.npz", LoadOptions(materials=MaterialMap.from_file(mapping)))
+    assert bone.grid.density.ravel().tolist() == [255, 255, 0, 0, 0, 255]
+
+
+def test_auto_detection_does_not_call_a_label_map_a_mask(tmp_path):
+    values = np.zeros((4, 4, 4), dtype=np.uint8)
+    values[0], values[1], values[2] = 3, 100, 255
+    np.save(tmp_path / "v.npy", values)
+    bone = load_bone(tmp_path / "v.npy", LoadOptions(spacing_mm=(1, 1, 1)))
+    assert bone.kind == "labels"
+    mask = np.where(values > 0, np.uint8(255), np.uint8(0))
+    np.save(tmp_path / "m.npy", mask)
+    assert load_bone(tmp_path / "m.npy", LoadOptions(spacing_mm=(1, 1, 1))).kind == "density"

@@ -3,8 +3,8 @@
 A CT voxel is bone when its HU falls in one of a mapping's bands; the band names its material.
 The defaults are the usual bone presets: trabecular 148–661 HU, cortical 662–1988 HU; air, fat,
 water and soft tissue (below 148 HU) are not bone. Voxels denser than the top band (petrous
-bone and enamel can pass 2000 HU) count as the top band's material unless the mapping says the
-top is ``empty`` (to drop metal).
+bone and enamel can pass 2000 HU) count as the top band's material unless the mapping sets
+``above_top = false`` (to drop metal). HU between two bands that do not touch is not bone.
 
 Thresholding a partial-volume scan puts the surface on the threshold's iso-level and makes it
 a staircase at the scan's resolution. ``partial_volume_hu`` > 0 replaces the hard step at the
@@ -105,9 +105,13 @@ def ct_to_bone(
     """
     lo = np.array([b.min_hu for b in mapping.bands], dtype=np.float64)
     hi = np.array([b.max_hu for b in mapping.bands], dtype=np.float64)
-    # A band reaches up to the next band's start, so integer HU just above max_hu (661.5 in a
-    # float scan) is not lost between bands; the top band ends at max_hu unless above_top.
+    # Bands whose integer ranges touch (661 | 662) meet at the next band's start, so 661.5 in
+    # a float scan is not lost between them; a wider gap is a gap. The top band ends at max_hu
+    # unless above_top.
     upper = np.append(lo[1:], np.inf)
+    for b in range(len(hi) - 1):
+        if lo[b + 1] - hi[b] > 1.0:
+            upper[b] = np.nextafter(hi[b], np.inf)
     if not mapping.above_top:
         upper[-1] = np.nextafter(hi[-1], np.inf)
     density = np.empty(hu.shape, dtype=np.uint8)
@@ -139,7 +143,9 @@ def _classify(hu, lo, upper, band_labels, ramp_hu, density, labels):
                     while b + 1 < nb and v >= lo[b + 1]:
                         b += 1
                     lab = band_labels[b]
-                    if ramp_hu > 0.0 and v < t + half:
+                    if v >= upper[b]:  # in a gap between bands: not bone
+                        lab = 0
+                    elif ramp_hu > 0.0 and v < t + half:
                         frac = 0.5 + (v - t) / ramp_hu
                         d = int(255.0 * frac + 0.5)
                         if d <= 0:

@@ -185,10 +185,19 @@ class MaterialMap:
         taken = {m.name for m in used}
         for value in orphans:
             seg = segments.get(value) or Segment()
-            name = _unique(_printable(seg.display_name(value)), taken)
-            taken.add(name)
-            material = Material(name, CORTICAL.us_n_mm2, CORTICAL.k)
-            used.append(material)
+            # A segment named after a built-in material ("Nerve", "trabecular") is that
+            # material, with its Us, K and forbidden flag, never a look-alike cut as cortical.
+            builtin = BUILTIN_MATERIALS.get(seg.display_name(value).strip().lower())
+            if builtin is not None and builtin.name not in taken:
+                material = builtin
+            elif builtin is not None:
+                material = next(m for m in used if m.name == builtin.name)
+            else:
+                name = _unique(_printable(seg.display_name(value)), taken)
+                material = Material(name, CORTICAL.us_n_mm2, CORTICAL.k)
+            if material.name not in taken:
+                taken.add(material.name)
+                used.append(material)
             chosen[value] = material
         if len(used) > N_LABELS - 1:
             raise ValueError(f"the volume has {len(used)} materials; at most {N_LABELS - 1} "

@@ -88,9 +88,9 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
                      "keep their positions)")
     # The kernels walk the voxels as one flat run, and the grid keeps C order: copy a
     # Fortran-ordered (NRRD, NIfTI) or flipped source once here, before it becomes bytes.
-    data = np.ascontiguousarray(data)
+    data = _native(data)
     if labels_in is not None:
-        labels_in = np.ascontiguousarray(labels_in)
+        labels_in = _native(labels_in)
     stats = _Stats(data)
     kind = raw.kind if options.kind == "auto" else options.kind
     if kind == "auto":
@@ -113,6 +113,10 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
             density = _density(data, stats)
             if labels_in is not None:
                 _, labels, table = _labels_to_bone(labels_in, _Stats(labels_in), raw, options)
+                unlabelled = int(np.count_nonzero((density > 0) & (labels == 0)))
+                if unlabelled:
+                    raise ValueError(f"{unlabelled:,} voxels hold bone but have label 0 (empty "
+                                     "space): give every bone voxel a label")
                 labels = np.where(density > 0, labels, np.uint8(0))
             else:
                 table, labels = _single_material(density, options)
@@ -124,6 +128,15 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
     except ValueError as exc:
         raise BoneFileError(path, str(exc)) from None
     return Bone(grid, table, name=str(path), format=raw.format, kind=kind, notes=notes)
+
+
+def _native(array: np.ndarray) -> np.ndarray:
+    """C-ordered, native byte order, and no float16 (the kernels read any of the rest)."""
+    if array.dtype == np.float16:
+        array = array.astype(np.float32)
+    elif not array.dtype.isnative:
+        array = array.astype(array.dtype.newbyteorder("="))
+    return np.ascontiguousarray(array)
 
 
 class _Stats:
@@ -178,7 +191,7 @@ def _detect_kind(data: np.ndarray, stats: _Stats) -> tuple[str, str]:
         return "ct", f"integer values {lo:g}..{hi:g} (HU)"
     counts = stats.counts()
     distinct = int(np.count_nonzero(counts))
-    if hi == 255.0 and np.count_nonzero(counts[1 - int(lo):-1]) == 0:
+    if lo == 0.0 and hi == 255.0 and np.count_nonzero(counts[1:-1]) == 0:
         return "density", "a 0/255 mask"
     if distinct <= MAX_AUTO_LABELS:
         return "labels", f"{distinct} distinct integer values in 0..255"

@@ -71,7 +71,10 @@ def from_axes(path: Path, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             path, f"the grid is sheared (axes {np.degrees(np.arccos(np.clip(1 - off, -1, 1))):.2f}"
                   "° from orthogonal, as from a tilted CT gantry): resample it onto a "
                   "rectilinear grid first")
-    return spacing, direction
+    # Files store directions to a few decimals: snap to the nearest orthonormal matrix (the
+    # polar factor keeps the determinant's sign), so a rounded rotation is still a rotation.
+    u, _, vt = np.linalg.svd(direction)
+    return spacing, u @ vt
 
 
 def make_right_handed(

@@ -55,6 +55,10 @@ def read_nifti(path: Path, options: LoadOptions, progress: Progress | None) -> R
     spacing, direction = from_axes(path, affine[:3, :3] * scale)
     origin, direction = to_lps(affine[:3, 3] * scale, direction, "RAS")
     notes.append("converted from RAS to LPS")
+    if int(header["sform_code"]) == 0 and int(header["qform_code"]) == 0:
+        notes.append("the file gives no orientation (sform and qform codes 0): spacing from "
+                     "pixdim, but the origin and axes are nibabel's guess — place the bone "
+                     "yourself")
     intent = int(header["intent_code"])
     kind = "labels" if intent == NIFTI_INTENT_LABEL else "auto"
     return RawVolume(path, "nifti", data, spacing, origin, direction, kind=kind, notes=notes)

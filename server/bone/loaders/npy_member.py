@@ -57,6 +57,8 @@ def read_member(
         _check_count(path, what, shape, max_elements)
         with archive.open(name) as f:
             return np.lib.format.read_array(f, allow_pickle=False)
+    except BoneFileError:
+        raise
     except (zipfile.BadZipFile, EOFError, ValueError, OSError) as exc:
         raise BoneFileError(path, f"{what} is damaged or truncated: {exc}") from None
 

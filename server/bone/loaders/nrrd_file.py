@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import bz2
 import re
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 import nrrd
 import numpy as np
@@ -23,6 +25,7 @@ SPACES = {
     "scanner-xyz": None, "3d-right-handed": None,
 }
 _SEGMENT_KEY = re.compile(r"^Segment(\d+)_ID$")
+_CHUNK = 1 << 20
 
 
 def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> RawVolume:
@@ -33,11 +36,15 @@ def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> Ra
         except (nrrd.NRRDError, ValueError, TypeError, UnicodeDecodeError) as exc:
             raise BoneFileError(path, f"not a valid NRRD header: {exc}") from None
         sizes = tuple(int(s) for s in header.get("sizes", ()))
-        segments = _segments(path, header)
+        segments = _segments(path, header, len(sizes) == 4)
         layered = len(sizes) == 4 and bool(segments)
         check_size(path, sizes[1:] if layered else sizes, options)
+        if layered and int(np.prod(sizes, dtype=np.int64)) > options.max_voxels:
+            raise BoneFileError(path, f"{sizes[0]} layers of {sizes[1:]} voxels are more than "
+                                      f"the {options.max_voxels:,} allowed")
         if progress is not None:
             progress("reading", 0, 1)
+        _check_expansion(path, header, fh, int(np.prod(sizes, dtype=np.int64)))
         try:
             data = nrrd.read_data(header, fh, filename=str(path), index_order="F")
         except (nrrd.NRRDError, ValueError, EOFError, zlib.error, OSError) as exc:
@@ -106,15 +113,21 @@ def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):
     return spacing, origin, direction, notes
 
 
-def _segments(path: Path, header: dict) -> list[tuple[Segment, int, int]]:
-    """(segment, layer, label value) per 3D Slicer segment, in segment order."""
+def _segments(path: Path, header: dict, layered: bool) -> list[tuple[Segment, int, int]]:
+    """(segment, layer, label value) per 3D Slicer segment, in segment order.
+
+    Missing fields take 3D Slicer's own defaults: a segment's layer is its index (older Slicer
+    wrote one layer per segment), its label value 1. Two segments on the same layer with the
+    same value would be indistinguishable: an error, not a silent merge."""
     indices = sorted(int(m.group(1)) for k in header if (m := _SEGMENT_KEY.match(k)))
+    names = _utf8_fields(path)
     found = []
+    seen: dict[tuple[int, int], str] = {}
     for i in indices:
         prefix = f"Segment{i}_"
-        name = str(header.get(prefix + "Name", f"Segment {i}"))
+        name = names.get(prefix + "Name") or str(header.get(prefix + "Name", f"Segment {i}"))
         try:
-            layer = int(header.get(prefix + "Layer", 0))
+            layer = int(header.get(prefix + "Layer", i if layered else 0))
             value = int(header.get(prefix + "LabelValue", 1))
             color = None
             if prefix + "Color" in header:
@@ -124,8 +137,79 @@ def _segments(path: Path, header: dict) -> list[tuple[Segment, int, int]]:
                 color = tuple(round(c * 255) for c in rgb)
         except ValueError as exc:
             raise BoneFileError(path, f"segment {i} ({name!r}) has a bad field: {exc}") from None
+        if (layer, value) in seen:
+            raise BoneFileError(path, f"segments {seen[layer, value]!r} and {name!r} are both "
+                                      f"value {value} on layer {layer} (a Layer or LabelValue "
+                                      "field is missing or wrong)")
+        seen[layer, value] = name
         found.append((Segment(name, color), layer, value))
     return found
+
+
+def _utf8_fields(path: Path) -> dict[str, str]:
+    """The header's ``key:=value`` fields decoded as UTF-8 (3D Slicer writes segment names in
+    UTF-8; pynrrd reads headers as ASCII and drops what it cannot decode)."""
+    fields = {}
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.rstrip(b"\r\n")
+            if not line:
+                break  # the blank line that ends the header
+            key, sep, value = line.partition(b":=")
+            if sep:
+                fields[key.decode("utf-8", "replace")] = value.decode("utf-8", "replace")
+    return fields
+
+
+def _check_expansion(path: Path, header: dict, fh: BinaryIO, count: int) -> None:
+    """Refuse compressed data that inflates past what the header declares, before pynrrd
+    inflates all of it (a few kB of bzip2 can claim gigabytes)."""
+    encoding = str(header.get("encoding", "raw")).lower()
+    if encoding not in ("gzip", "gz", "bzip2", "bz2"):
+        return
+    itemsize = np.dtype(nrrd.reader._determine_datatype(header)).itemsize
+    skip = int(header.get("byteskip", header.get("byte skip", 0)))
+    limit = max(skip, 0) + count * itemsize if skip >= 0 else 2 * count * itemsize
+    data_file = header.get("datafile", header.get("data file"))
+    start = fh.tell()
+    if data_file is not None:
+        if not isinstance(data_file, str):
+            raise BoneFileError(path, "several detached data files are not supported")
+        source = Path(data_file) if Path(data_file).is_absolute() else path.parent / data_file
+        stream: BinaryIO = open(source, "rb")  # closed in finally
+    else:
+        stream = fh
+    try:
+        for _ in range(int(header.get("lineskip", header.get("line skip", 0)))):
+            stream.readline()
+        inflater = (zlib.decompressobj(zlib.MAX_WBITS | 16) if encoding.startswith("g")
+                    else bz2.BZ2Decompressor())
+        total = 0
+        while (chunk := stream.read(_CHUNK)) and not getattr(inflater, "eof", False):
+            while True:  # inflate this chunk, never more than limit + 1 bytes in all
+                total += len(inflater.decompress(chunk, limit + 1 - total))
+                if total > limit:
+                    raise BoneFileError(path, f"the compressed data inflates past the "
+                                              f"{limit:,} bytes its header declares")
+                chunk = _pending(inflater)
+                if chunk is None:
+                    break
+    except BoneFileError:
+        raise
+    except (zlib.error, OSError, EOFError, ValueError) as exc:
+        raise BoneFileError(path, f"the voxel data is damaged or truncated: {exc}") from None
+    finally:
+        if stream is not fh:
+            stream.close()
+        fh.seek(start)
+
+
+def _pending(inflater) -> bytes | None:
+    """What to feed the inflater next for the current chunk, or None when it is done with it:
+    zlib keeps back input (unconsumed_tail), bz2 keeps back output (fed with b"")."""
+    if isinstance(inflater, bz2.BZ2Decompressor):
+        return None if inflater.needs_input or inflater.eof else b""
+    return inflater.unconsumed_tail or None
 
 
 def _combine_segments(

@@ -56,7 +56,7 @@ def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) 
         data = np.empty((height, width, n), dtype=_GRAY_MODES[mode])
     for k, file in enumerate(files):
         image = first if k == 0 else _open(file)
-        if image.size != (width, height) or (image.mode in _COLOUR_MODES) != colour:
+        if image.size != (width, height) or image.mode != mode:
             raise BoneFileError(file, f"{image.size[0]}×{image.size[1]} {image.mode} differs "
                                       f"from the first slice's {width}×{height} {mode}")
         try:
