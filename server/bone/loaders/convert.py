@@ -79,6 +79,7 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
         notes.append(f"spacing {spacing.tolist()} mm given by the user")
     if options.origin_mm is not None:
         origin = np.asarray(options.origin_mm, dtype=np.float64)
+        notes.append(f"origin {origin.tolist()} mm given by the user")
     data, origin2, direction = make_right_handed(raw.data, origin, spacing, raw.direction)
     labels_in = raw.labels
     if data is not raw.data:
