@@ -3,34 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from . import __version__
+from .cli_args import float_at_least, int_in
 
-
-def _float_arg(minimum: float, inclusive: bool):
-    """An argparse type: a finite float ≥ minimum (or > minimum)."""
-    relation = "≥" if inclusive else ">"
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-        if not math.isfinite(value) or value < minimum or (value == minimum and not inclusive):
-            raise argparse.ArgumentTypeError(
-                f"must be a finite number {relation} {minimum:g}, got {text}")
-        return value
-
-    return parse
-
-
-_positive_float = _float_arg(0.0, inclusive=False)
-_non_negative_float = _float_arg(0.0, inclusive=True)
+_positive_float = float_at_least(0.0, inclusive=False)
+_non_negative_float = float_at_least(0.0, inclusive=True)
+_elements = int_in(8, 1_000_000, "element count")
 
 
 def _angles(text: str) -> list[float]:
@@ -42,16 +25,6 @@ def _angles(text: str) -> list[float]:
     if not values or any(not 0.0 < v <= 90.0 for v in values):
         raise argparse.ArgumentTypeError(f"each angle must be in (0, 90] degrees, got {text!r}")
     return values
-
-
-def _elements(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 8 <= value <= 1_000_000:
-        raise argparse.ArgumentTypeError(f"element count must be in 8..1000000, got {value}")
-    return value
 
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:

@@ -12,28 +12,19 @@ from hypothesis import strategies as st
 
 from burrforce.server.bench import bone_files
 from burrforce.server.bone.bone import Bone
-from burrforce.server.bone.loaders import BoneFileError, LoadOptions, load_bone, save_bone
+from burrforce.server.bone.loaders import BoneFileError, LoadOptions, load_bone
 from burrforce.server.bone.phantoms import phantom
 
 SPACING = LoadOptions(spacing_mm=(1.0, 1.0, 1.0))
-WRITERS = {
-    "bone": (lambda b, p: save_bone(b, p), "f.bone.npz"),
-    "npz": (bone_files.write_npz, "f.npz"),
-    "npy": (bone_files.write_npy, "f.npy"),
-    "nrrd": (bone_files.write_nrrd_labels, "f.nrrd"),
-    "seg.nrrd": (bone_files.write_seg_nrrd, "f.seg.nrrd"),
-    "nifti": (bone_files.write_nifti_labels, "f.nii"),
-    "nifti.gz": (bone_files.write_nifti_ct, "f.nii.gz"),
-    "dicom": (bone_files.write_dicom_ct, "dicom"),
-    "png": (bone_files.write_png_stack, "png"),
-}
+#: Each code path: compressed and raw NIfTI, labels and CT, colour and grey PNG, …
+FORMATS = list(bone_files.FORMAT_WRITERS)
 
 
 @pytest.fixture(scope="module")
 def originals(tmp_path_factory) -> dict[str, Path]:
     bone = phantom("workpiece", 4.0)  # a few hundred voxels: small files, fast loads
     root = tmp_path_factory.mktemp("originals")
-    return {fmt: writer(bone, root / name) for fmt, (writer, name) in WRITERS.items()}
+    return {fmt: bone_files.write(bone, fmt, root) for fmt in FORMATS}
 
 
 def _target(original: Path) -> Path:
@@ -72,7 +63,7 @@ def _mutate(data: bytes, how) -> bytes:
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")  # pydicom warns about each bad value
-@pytest.mark.parametrize("fmt", list(WRITERS))
+@pytest.mark.parametrize("fmt", FORMATS)
 @settings(max_examples=150, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(how=mutation)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli_args import float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case
@@ -205,14 +206,7 @@ def plot(rows: list[AccuracyRow], path: Path) -> None:
     plt.close(fig)
 
 
-def _voxel_size(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.02 <= value <= 0.5:
-        raise argparse.ArgumentTypeError(f"voxel size must be in [0.02, 0.5] mm, got {text}")
-    return value
+_voxel_size = float_in(0.02, 0.5, "voxel size", "mm")
 
 
 def _element_counts(text: str) -> tuple[int, ...]:

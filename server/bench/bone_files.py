@@ -215,3 +215,31 @@ def write_png_gray(bone: Bone, folder: Path) -> Path:
         Image.fromarray(np.ascontiguousarray(density[:, :, k]), mode="L").save(
             folder / f"slice{k}.png")
     return folder
+
+
+def _save_compact(bone: Bone, path: Path) -> Path:
+    from ..bone.loaders import save_bone
+    return save_bone(bone, path)
+
+
+#: Every way this module writes a bone: format name → (writer, file or folder name).
+FORMAT_WRITERS = {
+    "bone": (_save_compact, "bone.bone.npz"),
+    "npz": (write_npz, "bone.npz"),
+    "npy": (write_npy, "bone.npy"),
+    "nrrd": (write_nrrd_labels, "labels.nrrd"),
+    "nrrd-ct": (write_nrrd_ct, "ct.nrrd"),
+    "seg.nrrd": (write_seg_nrrd, "bone.seg.nrrd"),
+    "nifti": (write_nifti_labels, "labels.nii.gz"),
+    "nifti-raw": (write_nifti_labels, "labels.nii"),
+    "nifti-ct": (write_nifti_ct, "ct.nii.gz"),
+    "dicom": (write_dicom_ct, "dicom"),
+    "png": (write_png_stack, "png"),
+    "png-gray": (write_png_gray, "gray"),
+}
+
+
+def write(bone: Bone, fmt: str, folder: Path) -> Path:
+    """Write ``bone`` in format ``fmt`` (a FORMAT_WRITERS key) into ``folder``; its path."""
+    writer, name = FORMAT_WRITERS[fmt]
+    return writer(bone, folder / name)

@@ -20,9 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli_args import int_in
 from .timing import machine_line
 
-#: format name → (writer in bone_files, file name, extra load options)
+#: The formats timed: keys of bone_files.FORMAT_WRITERS.
 FORMATS = ("bone", "npz", "nrrd", "seg.nrrd", "nifti", "nifti-ct", "dicom", "png")
 DEFAULT_SIZE = 512
 
@@ -62,21 +63,6 @@ def build_bone(size: int):
     return Bone(grid, bone.materials, name=f"temporal phantom in {size}³", format="phantom")
 
 
-def _writers():
-    from ..bone.loaders import save_bone
-    from . import bone_files as bf
-    return {
-        "bone": (lambda b, p: save_bone(b, p), "bone.bone.npz"),
-        "npz": (bf.write_npz, "bone.npz"),
-        "nrrd": (bf.write_nrrd_labels, "labels.nrrd"),
-        "seg.nrrd": (bf.write_seg_nrrd, "bone.seg.nrrd"),
-        "nifti": (bf.write_nifti_labels, "labels.nii.gz"),
-        "nifti-ct": (bf.write_nifti_ct, "ct.nii.gz"),
-        "dicom": (bf.write_dicom_ct, "dicom"),
-        "png": (bf.write_png_stack, "png"),
-    }
-
-
 def _size_mb(path: Path) -> float:
     if path.is_dir():
         return sum(p.stat().st_size for p in path.iterdir()) / 1e6
@@ -94,13 +80,10 @@ def run(size: int, formats: tuple[str, ...], repeats: int, workdir: Path,
     mapping.write_text(bone_files.materials_toml(bone))
     baseline = _child(["--baseline"])["peak_rss_mb"]
     rows = []
-    writers = _writers()
     for fmt in formats:
-        writer, name = writers[fmt]
-        target = workdir / name
         say(f"{fmt}: writing")
         t0 = time.perf_counter()
-        path = writer(bone, target)
+        path = bone_files.write(bone, fmt, workdir)
         write_s = time.perf_counter() - t0
         args = [str(path), "--materials", str(mapping), "--spacing", spacing]
         _child(args)  # warm the numba cache and the page cache
@@ -199,16 +182,6 @@ def render_markdown(rows: list[LoadRow], command: str) -> str:
     return "\n".join(lines)
 
 
-def _size(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 32 <= value <= 1024:
-        raise argparse.ArgumentTypeError(f"size must be in 32..1024, got {value}")
-    return value
-
-
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(part.strip() for part in text.split(",") if part.strip())
     unknown = [f for f in chosen if f not in FORMATS]
@@ -223,11 +196,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Write a phantom padded to N³ voxels in every format and time loading it "
                     "back (fresh process per load: peak memory). Writes OUT/load.md and "
                     "load.json.")
-    p.add_argument("--size", type=_size, default=DEFAULT_SIZE,
+    p.add_argument("--size", type=int_in(32, 1024, "size"), default=DEFAULT_SIZE,
                    help=f"voxels per side. Default {DEFAULT_SIZE}")
     p.add_argument("--formats", type=_formats, default=FORMATS,
                    help=f"comma-separated subset of {','.join(FORMATS)}")
-    p.add_argument("--repeats", type=int, default=3, help="loads per format. Default 3")
+    p.add_argument("--repeats", type=int_in(1, 20, "repeats"), default=3,
+                   help="loads per format. Default 3")
     p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
                    help="results directory. Default ./benchmarks")
@@ -235,8 +209,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    if not 1 <= args.repeats <= 20:
-        raise ValueError(f"--repeats must be in 1..20, got {args.repeats}")
     flags = [] if args.size == DEFAULT_SIZE else [f"--size {args.size}"]
     if args.formats != FORMATS:
         flags.append("--formats " + ",".join(args.formats))

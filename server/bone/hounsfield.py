@@ -116,10 +116,11 @@ def ct_to_bone(
         upper[-1] = np.nextafter(hi[-1], np.inf)
     density = np.empty(hu.shape, dtype=np.uint8)
     labels = np.empty(hu.shape, dtype=np.uint8)
+    band_labels = np.asarray(band_labels, dtype=np.uint8)
     n = hu.shape[0]
     for start in range(0, n, SLAB):
         stop = min(start + SLAB, n)
-        _classify(hu[start:stop], lo, upper, np.asarray(band_labels, dtype=np.uint8),
+        _classify(hu[start:stop], lo, upper, band_labels,
                   float(mapping.partial_volume_hu), density[start:stop], labels[start:stop])
         if progress is not None:
             progress(stop, n)

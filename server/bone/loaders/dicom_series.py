@@ -139,11 +139,8 @@ def read_dicom_series(path: Path, options: LoadOptions, progress: Progress | Non
     row_dir, col_dir, normal = _axes(first)
     spacing_in = (float(first.pixel_spacing_mm[1]), float(first.pixel_spacing_mm[0]))
     axes = np.column_stack((row_dir * spacing_in[0], col_dir * spacing_in[1], normal * step_mm))
+    # IOP is rounded text: from_axes snaps the axes to the nearest rotation.
     spacing, direction = from_axes(ordered[0].path, axes)
-    # IOP is rounded text: snap the axes to the nearest rotation (within MAX_SHEAR_COS, checked
-    # by from_axes) so BoneGrid's strict orthonormality test accepts them.
-    u, _, vt = np.linalg.svd(direction)
-    direction = u @ vt
     origin = np.array(ordered[0].position_mm, dtype=np.float64)
 
     shape = (first.cols, first.rows, len(ordered))

@@ -97,19 +97,16 @@ def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):
             notes.append(f"converted from {units[0]} to mm")
     else:
         notes.append("no space units: millimetres assumed")
-    space = str(header.get("space", "")).strip().lower()
-    if space:
-        if space not in SPACES:
-            raise BoneFileError(path, f"unsupported NRRD space {header['space']!r} (known: "
-                                      f"{', '.join(k for k in SPACES if len(k) > 3)})")
-        frame = SPACES[space]
-        if frame is not None:
-            spacing, direction = from_axes(path, axes)
-            origin, direction = to_lps(origin, direction, frame)
-            if frame != "LPS":
-                notes.append(f"converted from {frame} to LPS")
-            return spacing, origin, direction, notes
     spacing, direction = from_axes(path, axes)
+    space = str(header.get("space", "")).strip().lower()
+    if space and space not in SPACES:
+        raise BoneFileError(path, f"unsupported NRRD space {header['space']!r} (known: "
+                                  f"{', '.join(k for k in SPACES if len(k) > 3)})")
+    frame = SPACES.get(space)
+    if frame is not None:
+        origin, direction = to_lps(origin, direction, frame)
+        if frame != "LPS":
+            notes.append(f"converted from {frame} to LPS")
     return spacing, origin, direction, notes
 
 

@@ -1,0 +1,56 @@
+"""argparse types shared by the commands: numbers in a range, with messages that say which."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+
+def float_at_least(minimum: float, inclusive: bool) -> Callable[[str], float]:
+    """A finite float ≥ minimum (or > minimum)."""
+    relation = "≥" if inclusive else ">"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value) or value < minimum or (value == minimum and not inclusive):
+            raise argparse.ArgumentTypeError(
+                f"must be a finite number {relation} {minimum:g}, got {text}")
+        return value
+
+    return parse
+
+
+def float_in(low: float, high: float, what: str, unit: str = "") -> Callable[[str], float]:
+    """A float in [low, high]; ``what`` and ``unit`` name it in the message."""
+    suffix = f" {unit}" if unit else ""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not low <= value <= high:  # also refuses NaN
+            raise argparse.ArgumentTypeError(
+                f"{what} must be in [{low:g}, {high:g}]{suffix}, got {text}")
+        return value
+
+    return parse
+
+
+def int_in(low: int, high: int, what: str) -> Callable[[str], int]:
+    """An integer in low..high; ``what`` names it in the message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{what} must be in {low}..{high}, got {value}")
+        return value
+
+    return parse
