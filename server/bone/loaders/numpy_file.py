@@ -29,9 +29,9 @@ def read_npy(path: Path, options: LoadOptions) -> RawVolume:
                                   "(--spacing-mm), or use .npz with a spacing_mm array")
     data = read_npy_array(path, options.max_voxels)
     check_size(path, data.shape, options)
-    origin = options.origin_mm if options.origin_mm is not None else (0.0, 0.0, 0.0)
+    # The converter applies options.spacing_mm and options.origin_mm (and notes them).
     return RawVolume(path, "npy", data, np.asarray(options.spacing_mm, dtype=np.float64),
-                     np.asarray(origin, dtype=np.float64), np.eye(3),
+                     np.zeros(3), np.eye(3),
                      notes=["no geometry in a .npy: identity orientation"])
 
 
@@ -58,7 +58,6 @@ def read_npz(path: Path, options: LoadOptions) -> RawVolume | Bone:
             labels = read_member(path, archive, "labels", options.max_voxels)
         meta = {k: read_member(path, archive, k, MAX_META_ELEMENTS)
                 for k in GEOMETRY_KEYS if k in keys}
-    notes = []
     if "spacing_mm" in meta:
         spacing = np.asarray(meta["spacing_mm"], dtype=np.float64).reshape(-1)
         if spacing.shape == (1,):
@@ -78,5 +77,4 @@ def read_npz(path: Path, options: LoadOptions) -> RawVolume | Bone:
         raise BoneFileError(path, f"direction must be 3×3, got shape {direction.shape}")
     # Unit columns are checked (and a negative spacing folded into its axis) by from_axes.
     spacing, unit_dirs = from_axes(path, direction * spacing)
-    return RawVolume(path, "npz", data, spacing, origin, unit_dirs, kind=kind, labels=labels,
-                     notes=notes)
+    return RawVolume(path, "npz", data, spacing, origin, unit_dirs, kind=kind, labels=labels)

@@ -69,8 +69,7 @@ def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) 
         if progress is not None:
             progress("reading", k + 1, n)
     spacing = np.asarray(options.spacing_mm, dtype=np.float64)
-    origin = np.asarray(options.origin_mm if options.origin_mm is not None else (0, 0, 0),
-                        dtype=np.float64)
+    origin = np.zeros(3)  # the converter applies options.origin_mm (and notes it)
     notes = [f"{n} PNG slices in natural file-name order; identity orientation"]
     if not colour:
         return RawVolume(path, "png", data, spacing, origin, np.eye(3), notes=notes)
