@@ -78,6 +78,16 @@ def load_from_args(args: argparse.Namespace) -> Bone:
     text = str(args.path)
     if text.startswith(PHANTOM_PREFIX):
         from .bone.phantoms import phantom
+        file_options = [flag for flag, value, default in (
+            ("--kind", args.kind, "auto"), ("--spacing-mm", args.spacing_mm, None),
+            ("--origin-mm", args.origin_mm, None), ("--materials", args.materials, None),
+            ("--material", args.material, "cortical"), ("--series", args.series, None))
+            if value != default]
+        if file_options:
+            verb = "is" if len(file_options) == 1 else "are"
+            raise ValueError(f"{', '.join(file_options)} {verb} for files, not for a built-in "
+                             "phantom (it has its own geometry and materials; --voxel-mm sets "
+                             "its voxel size)")
         return phantom(text[len(PHANTOM_PREFIX):], args.voxel_mm)
     if args.voxel_mm is not None:
         raise ValueError("--voxel-mm sets a phantom's voxel size; for a file use --spacing-mm")
@@ -155,9 +165,16 @@ def format_info(info: dict) -> str:
 
 
 def _run_convert(args: argparse.Namespace) -> int:
+    folder = args.output.parent
+    try:  # before the load, which can take seconds
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot write {args.output}: {exc.strerror}") from None
     bone = load_from_args(args)
     path = save_bone(bone, args.output)
     total = sum(bone.volumes_mm3().values())
-    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB): {bone.grid.shape} voxels, "
+    size = path.stat().st_size
+    shown = f"{size / 1e6:.2f} MB" if size >= 1e6 else f"{size / 1e3:.1f} kB"
+    print(f"wrote {path} ({shown}): {bone.grid.shape} voxels, "
           f"{len(bone.materials)} materials, {total:.1f} mm³ of bone")
     return 0

@@ -90,3 +90,18 @@ def test_bone_errors_name_the_file(files, tmp_path, capsys):
     assert "bad.toml" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["bone", "info", str(files["nrrd"]), "--spacing-mm", "1,2"])
+
+
+def test_bone_convert_makes_the_output_folder(tmp_path, capsys):
+    out = tmp_path / "new" / "folder" / "workpiece"
+    assert main(["bone", "convert", "phantom:workpiece", str(out), "--voxel-mm", "1"]) == 0
+    assert (out.parent / "workpiece.bone.npz").is_file()
+    assert "workpiece.bone.npz" in capsys.readouterr().out
+
+
+def test_file_options_on_a_phantom_are_an_error(tmp_path, capsys):
+    materials = tmp_path / "m.toml"
+    materials.write_text("[materials.cortical]\nlabels = [1]\n")
+    assert main(["bone", "info", "phantom:temporal", "--materials", str(materials)]) == 2
+    err = capsys.readouterr().err
+    assert "--materials" in err and "phantom" in err
