@@ -1,5 +1,8 @@
-"""burrforce client: talks to a running burrforce server over its UDP wire protocol.
+"""burrforce client: talks to a running burrforce server over its UDP wire protocol."""
 
-The UDP client, trajectory streaming and ``burrforce client demo`` arrive with the wire
-protocol (proto/SPEC.md); until then this package only reserves the import name.
-"""
+from .aio import AsyncBurrClient
+from .trajectory import StreamResult, Waypoint, hold, line, stream
+from .udp import BurrClient, Result, ServerError
+
+__all__ = ["AsyncBurrClient", "BurrClient", "Result", "ServerError", "StreamResult",
+           "Waypoint", "hold", "line", "stream"]

@@ -116,12 +116,14 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
     from .bench import accuracy as bench_accuracy
+    from .bench import latency as bench_latency
     from .bench import load as bench_load
     from .bench import model as bench_model
 
     bench_model.add_parser(bench_sub)
     bench_accuracy.add_parser(bench_sub)
     bench_load.add_parser(bench_sub)
+    bench_latency.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:

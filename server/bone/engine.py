@@ -253,8 +253,7 @@ class BoneEngine:
         ax = ax / np.linalg.norm(ax)
         self.step_raw(g.to_grid_point(centre), g.to_grid_vector(ax), g.to_grid_vector(feed),
                       rpm, carve)
-        now = time.monotonic() if time_s is None else float(time_s)
-        self._record_contact(now)
+        self.record_contact(time.monotonic() if time_s is None else float(time_s))
         out = self.out.copy()
         shaft = self.shaft_out.copy()
         if not g.identity_direction:
@@ -279,9 +278,10 @@ class BoneEngine:
             bone_version=g.version,
         )
 
-    def _record_contact(self, now: float) -> None:
-        """One event per forbidden label when contact with it begins (not every tick, and not
-        again while it continues, whichever neighbour is the most covered)."""
+    def record_contact(self, now: float) -> None:
+        """After :meth:`step_raw`: one event per forbidden label when contact with it begins
+        (not every tick, and not again while it continues, whichever neighbour is the most
+        covered). ``now`` is the event's time, s."""
         if self.touch[TOUCH_FORBIDDEN] <= 0.0:
             self._touching = frozenset()
             return
@@ -294,6 +294,10 @@ class BoneEngine:
         self._touching = now_touching
 
     # -- totals -----------------------------------------------------------------------------
+    def removed_this_tick_mm3(self) -> float:
+        """Bone the last tick removed, mm³ (all materials)."""
+        return float(self._removed_tick.sum()) * self._mm3_per_unit
+
     @property
     def _mm3_per_unit(self) -> float:
         """mm³ per unit of the kernels' removal counters (density × swept steps)."""

@@ -1,0 +1,150 @@
+"""The asyncio UDP client: the same protocol as :class:`~.udp.BurrClient`, awaitable."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Sequence
+
+from ..proto.codec import encode_pose
+from ..proto.messages import FLAG_NEW_STREAM, OK, Notice, Pose, Reply
+from ..proto.sequence import seq_next
+from ..proto.tag import Tagger, parse_key
+from .udp import IDENTITY, BurrClient, Result, ServerError, now_us
+
+#: Unclaimed replies kept for :meth:`AsyncBurrClient.receive` (oldest dropped first).
+QUEUE_LIMIT = 1024
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: AsyncBurrClient) -> None:
+        self.owner = owner
+
+    def datagram_received(self, data: bytes, addr: object) -> None:
+        self.owner._arrived(data, now_us())
+
+    def error_received(self, exc: Exception) -> None:  # ICMP errors: nothing listens yet
+        self.owner.counters["icmp_errors"] = self.owner.counters.get("icmp_errors", 0) + 1
+
+
+class AsyncBurrClient:
+    """An asyncio UDP client for one session. Create with :meth:`connect`.
+
+    ``exchange`` awaits the reply to its own packet; replies nobody awaits are queued for
+    :meth:`receive` (at most QUEUE_LIMIT). Tags, staleness and counters as ``BurrClient``.
+    """
+
+    def __init__(self, session: int, key: bytes | str | None, timeout_s: float,
+                 first_seq: int) -> None:
+        if isinstance(key, str):
+            key = parse_key(key)
+        self.session = session
+        self.tagger = Tagger(key) if key else None
+        self.timeout_s = timeout_s
+        self.seq = first_seq % (1 << 32)
+        # The sync client's acceptance rules (tags, order, counters), without its socket.
+        self._rules = BurrClient.__new__(BurrClient)
+        self._rules.session, self._rules.tagger, self._rules._newest = session, self.tagger, None
+        self._rules.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0,
+                                "stale": 0, "notices": 0, "timeouts": 0}
+        self.counters = self._rules.counters
+        self._waiting: dict[int, asyncio.Future] = {}
+        self._queue: deque[Result | Notice] = deque(maxlen=QUEUE_LIMIT)
+        self._queued = asyncio.Event()
+        self._transport: asyncio.DatagramTransport | None = None
+
+    @classmethod
+    async def connect(cls, host: str, port: int, session: int = 1,
+                      key: bytes | str | None = None, timeout_s: float = 0.1,
+                      first_seq: int = 1) -> AsyncBurrClient:
+        client = cls(session, key, timeout_s, first_seq)
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: _Protocol(client), remote_addr=(host, port))
+        client._transport = transport  # type: ignore[assignment]
+        return client
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+        for future in self._waiting.values():
+            if not future.done():
+                future.cancel()
+
+    async def __aenter__(self) -> AsyncBurrClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    def send(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
+             rpm: float = 0.0, spindle_on: bool = True,
+             velocity: Sequence[float] | None = None, flags: int = 0) -> int:
+        if self._transport is None:
+            raise RuntimeError("not connected: use await AsyncBurrClient.connect(...)")
+        seq = self.seq
+        self.seq = seq_next(seq)
+        if self._rules._newest is None:  # until the server has answered (see BurrClient.send)
+            flags |= FLAG_NEW_STREAM
+        pose = Pose(self.session, seq, now_us(), tuple(position), tuple(orientation),  # type: ignore[arg-type]
+                    rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
+                    flags)
+        self._transport.sendto(encode_pose(pose, self.tagger))
+        self.counters["sent"] += 1
+        return seq
+
+    def _arrived(self, data: bytes, arrived_us: int) -> None:
+        message = self._rules._accept(data)
+        if message is None:
+            return
+        if isinstance(message, Reply):
+            rtt = arrived_us - message.t_client_us
+            offset = ((message.t_recv_us - message.t_client_us)
+                      + (message.t_send_us - arrived_us)) / 2.0
+            item: Result | Notice = Result(message, float(rtt), offset)
+        else:
+            item = message
+        future = self._waiting.pop(message.seq, None)
+        if future is not None and not future.done():
+            future.set_result(item)
+            return
+        self._queue.append(item)
+        self._queued.set()
+
+    async def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
+        """The next reply or notice nobody awaited, or None after the timeout."""
+        if not self._queue:
+            self._queued.clear()
+            try:
+                await asyncio.wait_for(self._queued.wait(),
+                                       self.timeout_s if timeout_s is None else timeout_s)
+            except asyncio.TimeoutError:
+                return None
+        return self._queue.popleft()
+
+    async def exchange(self, position: Sequence[float],
+                       orientation: Sequence[float] = IDENTITY, rpm: float = 0.0,
+                       spindle_on: bool = True, velocity: Sequence[float] | None = None,
+                       flags: int = 0, timeout_s: float | None = None) -> Result:
+        """Send a pose and await its reply.
+
+        Raises:
+            TimeoutError: no reply within the timeout.
+            ServerError: a notice or an error reply.
+        """
+        future = asyncio.get_running_loop().create_future()
+        seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
+        self._waiting[seq] = future
+        wait = self.timeout_s if timeout_s is None else timeout_s
+        try:
+            item = await asyncio.wait_for(future, wait)
+        except asyncio.TimeoutError:
+            self.counters["timeouts"] += 1
+            raise TimeoutError(f"no reply to packet {seq} within {wait:g} s") from None
+        finally:
+            self._waiting.pop(seq, None)
+        if isinstance(item, Notice):
+            raise ServerError(item.error, seq)
+        if item.reply.error != OK:
+            raise ServerError(item.reply.error, seq)
+        return item

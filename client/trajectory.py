@@ -1,0 +1,129 @@
+"""Streaming a trajectory at a fixed rate, and simple trajectories to stream."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from ..proto.messages import Notice
+from .udp import IDENTITY, BurrClient, Result
+
+#: Sleep until this close to a send time, then spin (sleep overshoots by ~0.1 ms or more).
+SPIN_S = 0.0005
+
+
+class Waypoint(NamedTuple):
+    """One pose to send (engine frame and units)."""
+
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float] = IDENTITY
+    rpm: float = 0.0
+    spindle_on: bool = True
+    flags: int = 0
+
+
+@dataclass
+class StreamResult:
+    """What came back from a streamed trajectory.
+
+    Attributes:
+        results: one entry per waypoint: its Result, or None if no reply arrived.
+        notices: notices received (the server refused those packets).
+        late_sends: sends more than one period behind schedule (this machine was busy).
+    """
+
+    results: list[Result | None]
+    notices: list[Notice] = field(default_factory=list)
+    late_sends: int = 0
+
+    @property
+    def lost(self) -> int:
+        return sum(r is None for r in self.results)
+
+    def rtt_us(self) -> np.ndarray:
+        return np.array([r.rtt_us for r in self.results if r is not None])
+
+
+def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1000.0,
+           on_result: Callable[[int, Result], None] | None = None,
+           linger_s: float = 0.05) -> StreamResult:
+    """Send ``waypoints`` at ``rate_hz`` on an absolute schedule (no drift), collecting
+    replies as they arrive between sends; waits ``linger_s`` after the last send for stragglers.
+
+    ``on_result(index, result)`` is called as each reply arrives (keep it short: it runs
+    between sends).
+    """
+    if not 0.0 < rate_hz <= 100_000.0:
+        raise ValueError(f"rate_hz must be in (0, 100000], got {rate_hz}")
+    period = 1.0 / rate_hz
+    index_of: dict[int, int] = {}
+    results: list[Result | None] = []
+    out = StreamResult(results)
+
+    def collect(until: float) -> None:
+        while True:
+            remaining = until - time.perf_counter()
+            message = client.receive(max(remaining - SPIN_S, 0.0) if remaining > 0 else 0.0)
+            if message is None:
+                if time.perf_counter() >= until:
+                    return
+                continue
+            if isinstance(message, Notice):
+                out.notices.append(message)
+                continue
+            i = index_of.pop(message.reply.seq, None)
+            if i is not None:
+                results[i] = message
+                if on_result is not None:
+                    on_result(i, message)
+
+    start = time.perf_counter()
+    for k, w in enumerate(waypoints):
+        due = start + k * period
+        now = time.perf_counter()
+        if now - due > period:
+            out.late_sends += 1
+        elif due > now:
+            collect(due)
+        seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None, w.flags)
+        index_of[seq] = k
+        results.append(None)
+        # Index entries of replies that never come must not pile up.
+        if len(index_of) > 4 * rate_hz:
+            index_of.pop(next(iter(index_of)))
+    collect(time.perf_counter() + linger_s)
+    return out
+
+
+def line(start: Sequence[float], end: Sequence[float], speed: float, rate_hz: float = 1000.0,
+         orientation: Sequence[float] = IDENTITY, rpm: float = 0.0,
+         spindle_on: bool = True) -> Iterator[Waypoint]:
+    """Waypoints along a straight line at ``speed`` (length units per second), both ends
+    included."""
+    a = np.asarray(start, dtype=np.float64)
+    b = np.asarray(end, dtype=np.float64)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()) or a.shape != (3,) \
+            or b.shape != (3,):
+        raise ValueError("start and end must be 3 finite numbers each")
+    if not speed > 0.0 or not math.isfinite(speed):
+        raise ValueError(f"speed must be positive, got {speed}")
+    steps = max(1, math.ceil(float(np.linalg.norm(b - a)) / speed * rate_hz))
+    q = tuple(float(x) for x in orientation)
+    for k in range(steps + 1):
+        p = a + (b - a) * (k / steps)
+        yield Waypoint((float(p[0]), float(p[1]), float(p[2])), q, rpm, spindle_on)  # type: ignore[arg-type]
+
+
+def hold(position: Sequence[float], seconds: float, rate_hz: float = 1000.0,
+         orientation: Sequence[float] = IDENTITY, rpm: float = 0.0,
+         spindle_on: bool = True) -> Iterator[Waypoint]:
+    """Waypoints that stay at ``position`` for ``seconds``."""
+    p = tuple(float(x) for x in position)
+    q = tuple(float(x) for x in orientation)
+    for _ in range(max(1, round(seconds * rate_hz))):
+        yield Waypoint(p, q, rpm, spindle_on)  # type: ignore[arg-type]

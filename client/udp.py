@@ -1,0 +1,197 @@
+"""The UDP client: send poses, get decoded, verified replies with their round-trip time."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Sequence
+from typing import NamedTuple
+
+from ..proto.codec import ProtocolError, decode_server_message, encode_pose
+from ..proto.messages import (
+    ERROR_NAMES,
+    FLAG_NEW_STREAM,
+    MAX_REPLY_BYTES,
+    OK,
+    Notice,
+    Pose,
+    Reply,
+)
+from ..proto.sequence import seq_after, seq_next
+from ..proto.tag import Tagger, parse_key
+
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+class Result(NamedTuple):
+    """A reply and what the client measured about it.
+
+    Attributes:
+        reply: the decoded reply.
+        rtt_us: round trip, µs: from the request's timestamp to the reply's arrival (before
+            decoding).
+        offset_us: the server clock minus the client clock, µs (NTP's estimate: exact when
+            the two directions take equally long).
+    """
+
+    reply: Reply
+    rtt_us: float
+    offset_us: float
+
+
+class ServerError(RuntimeError):
+    """The server answered with a notice (the request was not processed) or an error reply."""
+
+    def __init__(self, code: int, seq: int) -> None:
+        self.code = code
+        self.seq = seq
+        super().__init__(f"server refused packet {seq}: {ERROR_NAMES.get(code, code)}"
+                         + _HINTS.get(code, ""))
+
+
+_HINTS = {
+    5: " (no such session: check --session, or that the server was restarted)",
+    6: " (wrong or missing key: use the key the server printed)",
+    3: " (protocol version mismatch: update the client or the server)",
+    7: " (a value is unusable: NaN, infinite, or a quaternion that is not unit length)",
+}
+
+
+def now_us() -> int:
+    """The client's monotonic clock, µs (what goes into t_client_us)."""
+    return time.monotonic_ns() // 1000
+
+
+class BurrClient:
+    """A UDP client for one session.
+
+    Args:
+        host, port: the server's UDP endpoint.
+        session: the session id.
+        key: the session key (bytes or hex), or None for a session without one.
+        timeout_s: how long :meth:`exchange` waits for a reply.
+        first_seq: the first sequence number (the server accepts any number to start a
+            stream, and again after the session has been idle for a second).
+
+    Replies whose tag does not verify, or that are not well-formed, are dropped and counted
+    in ``counters`` (``bad_tag``, ``malformed``); so are replies older than one already seen
+    (``stale``).
+    """
+
+    def __init__(self, host: str, port: int, session: int = 1, key: bytes | str | None = None,
+                 timeout_s: float = 0.1, first_seq: int = 1) -> None:
+        if isinstance(key, str):
+            key = parse_key(key)
+        self.session = session
+        self.tagger = Tagger(key) if key else None
+        self.timeout_s = timeout_s
+        self.seq = first_seq % (1 << 32)
+        self._newest: int | None = None
+        self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
+                         "notices": 0, "timeouts": 0}
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        # connect(): the kernel then delivers only the server's datagrams to this socket.
+        self.sock.connect((host, port))
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def __enter__(self) -> BurrClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def send(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
+             rpm: float = 0.0, spindle_on: bool = True,
+             velocity: Sequence[float] | None = None, flags: int = 0) -> int:
+        """Send one pose (engine frame and units); returns its sequence number."""
+        seq = self.seq
+        self.seq = seq_next(seq)
+        if self._newest is None:  # until the server has answered, every packet may start
+            flags |= FLAG_NEW_STREAM
+        pose = Pose(self.session, seq, now_us(), tuple(position), tuple(orientation),  # type: ignore[arg-type]
+                    rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
+                    flags)
+        self.sock.send(encode_pose(pose, self.tagger))
+        self.counters["sent"] += 1
+        return seq
+
+    def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
+        """The next verified reply or notice, or None if none arrives within the timeout
+        (0: only what has already arrived)."""
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        while True:
+            remaining = deadline - time.monotonic()
+            self.sock.settimeout(max(remaining, 0.0))
+            try:
+                data = self.sock.recv(MAX_REPLY_BYTES + 1)
+            except (BlockingIOError, TimeoutError):
+                return None
+            except ConnectionRefusedError:  # ICMP: nothing listens on the server's port
+                if remaining <= 0.0:
+                    return None
+                continue
+            arrived = now_us()
+            message = self._accept(data)
+            if message is None:
+                continue
+            if isinstance(message, Notice):
+                return message
+            reply = message
+            rtt = arrived - reply.t_client_us
+            offset = ((reply.t_recv_us - reply.t_client_us)
+                      + (reply.t_send_us - arrived)) / 2.0
+            return Result(reply, float(rtt), offset)
+
+    def _accept(self, data: bytes) -> Reply | Notice | None:
+        try:
+            message = decode_server_message(data)
+        except ProtocolError:
+            self.counters["malformed"] += 1
+            return None
+        if self.tagger is not None:
+            # A keyed session's replies are always tagged. Notices are tagged when the server
+            # knows the session; one about an unknown session cannot be, and is passed on.
+            tagged = message.tag is not None
+            if (tagged and not self.tagger.verify(data)) or \
+                    (not tagged and isinstance(message, Reply)):
+                self.counters["bad_tag"] += 1
+                return None
+        self.counters["received"] += 1
+        if isinstance(message, Notice):
+            self.counters["notices"] += 1
+            return message
+        if self._newest is not None and not seq_after(message.seq, self._newest):
+            self.counters["stale"] += 1
+            return None
+        self._newest = message.seq
+        return message
+
+    def exchange(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
+                 rpm: float = 0.0, spindle_on: bool = True,
+                 velocity: Sequence[float] | None = None, flags: int = 0,
+                 timeout_s: float | None = None) -> Result:
+        """Send a pose and wait for its reply.
+
+        Raises:
+            TimeoutError: no reply within the timeout.
+            ServerError: the server answered with a notice or an error reply.
+        """
+        seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        while True:
+            message = self.receive(max(deadline - time.monotonic(), 0.0))
+            if message is None:
+                self.counters["timeouts"] += 1
+                raise TimeoutError(f"no reply to packet {seq} within "
+                                   f"{self.timeout_s if timeout_s is None else timeout_s:g} s")
+            if isinstance(message, Notice):
+                if message.seq == seq:
+                    raise ServerError(message.error, seq)
+                continue
+            if message.reply.seq == seq:
+                if message.reply.error != OK:
+                    raise ServerError(message.reply.error, seq)
+                return message

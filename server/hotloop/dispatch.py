@@ -1,0 +1,136 @@
+"""From a datagram to the bytes of its answer: decode, authenticate, order, tick, encode.
+
+:meth:`Dispatcher.handle` never raises: every datagram is answered, noticed or dropped, and
+counted under one reason. No sockets here (the loop owns them), so it is testable directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from ...proto.codec import ProtocolError, decode_pose, encode_notice
+from ...proto.messages import (
+    BAD_TAG,
+    ERROR_NAMES,
+    INTERNAL,
+    OK,
+    UNKNOWN_SESSION,
+    Notice,
+)
+from .session import Session
+
+log = logging.getLogger("burrforce.hotloop")
+
+#: Notices (answers to datagrams that could not be used) per second, and the burst allowed:
+#: enough for a developer to see what is wrong, too few to make the server a flood's echo.
+NOTICE_RATE_HZ = 200.0
+NOTICE_BURST = 50.0
+#: INTERNAL errors logged with a traceback at most this often, s.
+INTERNAL_LOG_INTERVAL_S = 1.0
+
+
+class Dispatcher:
+    """The sessions of one hot loop and the protocol in front of them.
+
+    Counters (``counters``): ``received``, ``replied``, ``noticed``, ``notices_suppressed``,
+    ``send_errors``, and one per error name (``malformed``, ``too_big``, ``bad_version``,
+    ``bad_type``, ``unknown_session``, ``bad_tag``, ``bad_value``, ``stale``, ``duplicate``,
+    ``internal``) for datagrams that were not processed normally.
+    """
+
+    def __init__(self) -> None:
+        self.sessions: dict[int, Session] = {}
+        self.counters: dict[str, int] = {"received": 0, "replied": 0, "noticed": 0,
+                                         "notices_suppressed": 0, "send_errors": 0}
+        for code, name in ERROR_NAMES.items():
+            if code != OK:
+                self.counters[name] = 0
+        self._tokens = NOTICE_BURST
+        self._tokens_ns = 0
+        self._internal_logged_ns = -(1 << 62)
+
+    def add(self, session: Session) -> None:
+        if session.id in self.sessions:
+            raise ValueError(f"session {session.id} exists")
+        self.sessions[session.id] = session
+
+    def warm_up(self) -> None:
+        """Warm every session's path (``Session.warm_up``) and start counting from zero."""
+        for session in self.sessions.values():
+            session.warm_up()
+        for name in self.counters:
+            self.counters[name] = 0
+
+    def handle(self, data: bytes, t_recv_ns: int) -> bytes | None:
+        """The answer to ``data`` (received at ``t_recv_ns``, monotonic), or None."""
+        counters = self.counters
+        counters["received"] += 1
+        try:
+            pose = decode_pose(data)
+        except ProtocolError as exc:
+            return self._reject(exc.code, exc.header, len(data), None, t_recv_ns)
+        except Exception:  # a decoder bug must not stop the loop
+            return self._internal(None, len(data), t_recv_ns)
+        header = (pose.session, pose.seq, pose.t_client_us)
+        session = self.sessions.get(pose.session)
+        if session is None:
+            return self._reject(UNKNOWN_SESSION, header, len(data), None, t_recv_ns)
+        tagger = session.tagger
+        if tagger is not None and (pose.tag is None or not tagger.verify(data)):
+            return self._reject(BAD_TAG, header, len(data), session, t_recv_ns)
+        order = session.admit(pose.seq, t_recv_ns, pose.flags)
+        if order != OK:  # stale and duplicate datagrams are never answered (replays)
+            counters[ERROR_NAMES[order]] += 1
+            return None
+        try:
+            out, error = session.respond(pose, t_recv_ns)
+        except Exception:
+            session.counters["internal"] += 1
+            return self._internal(session, len(data), t_recv_ns, pose)
+        if error != OK:
+            counters[ERROR_NAMES[error]] += 1
+        counters["replied"] += 1
+        return out
+
+    def _reject(self, code: int, header: tuple[int, int, int] | None, size: int,
+                session: Session | None, now_ns: int) -> bytes | None:
+        """Count a rejected datagram; a short notice when it is addressable and no longer than
+        the datagram itself (so answering never amplifies), within the notice rate."""
+        self.counters[ERROR_NAMES[code]] += 1
+        if header is None:
+            return None
+        notice = encode_notice(Notice(*header, code),
+                               session.tagger if session is not None else None)
+        if len(notice) > size:
+            return None
+        self._tokens = min(NOTICE_BURST,
+                           self._tokens + (now_ns - self._tokens_ns) * 1e-9 * NOTICE_RATE_HZ)
+        self._tokens_ns = now_ns
+        if self._tokens < 1.0:
+            self.counters["notices_suppressed"] += 1
+            return None
+        self._tokens -= 1.0
+        self.counters["noticed"] += 1
+        return notice
+
+    def _internal(self, session: Session | None, size: int, now_ns: int,
+                  pose: object = None) -> bytes | None:
+        if now_ns - self._internal_logged_ns > INTERNAL_LOG_INTERVAL_S * 1e9:
+            self._internal_logged_ns = now_ns
+            log.exception("internal error on a datagram (further ones within %.0f s are only "
+                          "counted)", INTERNAL_LOG_INTERVAL_S)
+        if session is None or pose is None:
+            self.counters["internal"] += 1
+            return None
+        try:  # zero force with the error, so the client does not keep rendering the last one
+            self.counters["internal"] += 1
+            return session.error_reply(pose, INTERNAL, now_ns)  # type: ignore[arg-type]
+        except Exception:
+            self.counters["internal"] += 1
+            return None
+
+    def snapshot(self) -> dict[str, object]:
+        """Counters and per-session statistics (plain data, picklable)."""
+        return {"counters": dict(self.counters), "time_ns": time.monotonic_ns(),
+                "sessions": {sid: s.stats() for sid, s in self.sessions.items()}}

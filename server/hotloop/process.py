@@ -1,0 +1,288 @@
+"""The hot loop in its own process, and the handle the rest of the server holds on it.
+
+Measured (design.md): a CPU-busy uvicorn in the loop's interpreter pushes its p99 round trip
+from tens of µs to ~10 ms, so the loop gets a process of its own. The parent talks to it over
+a pipe (commands: stats, add/remove sessions, stop); a thread in the child serves the pipe and
+changes sessions between packets, under the loop's lock. Kernels are compiled (or loaded from
+numba's cache) and every path of a tick run once before the port opens, so the first packet
+is as fast as the thousandth.
+"""
+
+from __future__ import annotations
+
+import gc
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+from ..bone import Bone, BoneEngine, ShaftParams, load_bone, phantom
+from ..bone.loaders import LoadOptions
+from ..model.params import CuttingParams
+from .dispatch import Dispatcher
+from .loop import open_socket, serve
+from .session import Session, SessionConfig
+
+PHANTOM_PREFIX = "phantom:"
+#: The bone ``burrforce serve`` loads when none is named.
+DEFAULT_BONE = "phantom:temporal"
+#: First start with a cold numba cache compiles every kernel: minutes on a slow machine.
+START_TIMEOUT_S = 600.0
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """A session to create: which bone, which burr, which engine conventions, which key.
+
+    Attributes:
+        session_id: unsigned 32-bit id the client puts in every datagram.
+        bone: ``phantom:NAME`` (``bone.PHANTOMS``) or a bone file's path.
+        voxel_mm: a phantom's voxel size, mm (None: the phantom's default).
+        key: the session key; None only for loopback development (no tags).
+        config: frame, tool axis, features (``SessionConfig``).
+        params: burr radius, spin, minimum cutting speed.
+        shaft: the shaft's geometry.
+    """
+
+    session_id: int = 1
+    bone: str = DEFAULT_BONE
+    voxel_mm: float | None = None
+    key: bytes | None = None
+    config: SessionConfig = field(default_factory=SessionConfig)
+    params: CuttingParams = field(default_factory=CuttingParams)
+    shaft: ShaftParams = field(default_factory=ShaftParams)
+
+
+def load_session_bone(spec: SessionSpec) -> Bone:
+    if spec.bone.startswith(PHANTOM_PREFIX):
+        return phantom(spec.bone[len(PHANTOM_PREFIX):], spec.voxel_mm)
+    if spec.voxel_mm is not None:
+        raise ValueError("voxel_mm sets a phantom's voxel size, not a file's")
+    return load_bone(Path(spec.bone), LoadOptions())
+
+
+def build_session(spec: SessionSpec) -> Session:
+    bone = load_session_bone(spec)
+    engine = BoneEngine(bone.grid, bone.materials, spec.params, spec.shaft)
+    return Session(spec.session_id, engine, spec.config, spec.key)
+
+
+@dataclass(frozen=True)
+class HotLoopConfig:
+    """Where the hot loop listens and the sessions it starts with."""
+
+    host: str = "127.0.0.1"
+    udp_port: int = 0
+    sessions: tuple[SessionSpec, ...] = ()
+
+
+class HotLoopProcess:
+    """Starts, commands and stops the hot-loop process.
+
+    Use as a context manager, or call :meth:`start` and :meth:`stop`. :meth:`call` is
+    thread-safe.
+    """
+
+    def __init__(self, config: HotLoopConfig) -> None:
+        self.config = config
+        self.address: tuple[str, int] | None = None
+        self._proc: subprocess.Popen | None = None
+        self._conn: Connection | None = None
+        self._lock = threading.Lock()
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> tuple[str, int]:
+        """Start the process; returns (host, port) once the port is open.
+
+        The child is a fresh interpreter (``python -m burrforce.server.hotloop.child``), not a
+        multiprocessing child: nothing of the parent is inherited or re-imported, so this
+        works from any script, notebook or server.
+
+        Raises:
+            RuntimeError: the loop failed to start (the message says why) or timed out.
+        """
+        ours, theirs = socket.socketpair()
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "burrforce.server.hotloop.child", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+        conn = Connection(ours.detach())
+        self._proc, self._conn = proc, conn
+        try:
+            conn.send(self.config)
+            if not conn.poll(timeout_s):
+                raise RuntimeError(f"the hot loop did not start within {timeout_s:g} s")
+            message = conn.recv()
+        except (EOFError, OSError):
+            message = ("error", f"the hot-loop process exited (code {proc.poll()}) "
+                                "before it was ready")
+        except RuntimeError as exc:
+            message = ("error", str(exc))
+        if message[0] != "ready":
+            self._kill()
+            raise RuntimeError(message[1])
+        self.address = (message[1], message[2])
+        return self.address
+
+    def call(self, command: str, **kwargs: object) -> object:
+        """Run a command in the loop process and return its result.
+
+        Raises:
+            RuntimeError: the loop is not running, or the command failed (message from it).
+        """
+        with self._lock:
+            if self._conn is None:
+                raise RuntimeError("the hot loop is not running")
+            try:
+                self._conn.send((command, kwargs))
+                status, result = self._conn.recv()
+            except (EOFError, OSError, BrokenPipeError):
+                raise RuntimeError("the hot-loop process has exited") from None
+        if status != "ok":
+            raise RuntimeError(result)
+        return result
+
+    @property
+    def pid(self) -> int:
+        if self._proc is None:
+            raise RuntimeError("the hot loop is not running")
+        return self._proc.pid
+
+    def stats(self) -> dict:
+        return self.call("stats")  # type: ignore[return-value]
+
+    def is_alive(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop the loop (it closes its socket) and wait for the process to end."""
+        if self._proc is None:
+            return
+        try:
+            self.call("stop")
+        except RuntimeError:
+            pass
+        try:
+            self._proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            pass
+        self._kill()
+
+    def _kill(self) -> None:
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if self._conn is not None:
+            self._conn.close()
+        self._proc = None
+        self._conn = None
+
+    def __enter__(self) -> HotLoopProcess:
+        if self._proc is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+# -- the child process --------------------------------------------------------------------------
+def child_main(conn: Connection) -> None:
+    """The hot-loop process: read the config, build and warm the sessions, open the port,
+    report ready, then serve packets (this thread) and commands (another thread)."""
+    # The parent owns Ctrl-C and stops the loop through the pipe, after zeroing what it must.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        config = conn.recv()
+        if not isinstance(config, HotLoopConfig):
+            raise TypeError("expected a HotLoopConfig")
+        dispatcher = Dispatcher()
+        for spec in config.sessions:
+            dispatcher.add(build_session(spec))
+        dispatcher.warm_up()
+        sock = open_socket(config.host, config.udp_port)
+    except Exception as exc:
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    lock = threading.Lock()
+    stopping = threading.Event()
+    # Everything alive now lives for the process: keep the collector from walking it per
+    # packet.
+    gc.collect()
+    gc.freeze()
+    host, port = sock.getsockname()[:2]
+    conn.send(("ready", host, port))
+    commands = threading.Thread(target=_serve_commands,
+                                args=(conn, dispatcher, lock, stopping, sock),
+                                name="burrforce-commands", daemon=True)
+    commands.start()
+    serve(sock, dispatcher, lock, stopping)
+    sock.close()
+    commands.join(5.0)
+
+
+def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lock,
+                    stopping: threading.Event, sock: socket.socket) -> None:
+    while True:
+        try:
+            command, kwargs = conn.recv()
+        except (EOFError, OSError):  # the parent is gone: do not outlive it
+            command, kwargs = "stop", {}
+        except Exception as exc:  # an unpicklable command
+            _send(conn, "error", f"bad command: {exc}")
+            continue
+        if command == "stop":
+            stopping.set()
+            try:
+                sock.shutdown(socket.SHUT_RDWR)  # wakes the blocking recvfrom
+            except OSError:
+                pass
+            _send(conn, "ok", None)
+            return
+        try:
+            result = _run_command(command, kwargs, dispatcher, lock)
+        except Exception as exc:
+            _send(conn, "error", f"{command}: {type(exc).__name__}: {exc}")
+        else:
+            _send(conn, "ok", result)
+
+
+def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
+                 lock: threading.Lock) -> object:
+    if command == "stats":
+        with lock:
+            return dispatcher.snapshot()
+    if command == "add_session":
+        spec = kwargs["spec"]
+        if not isinstance(spec, SessionSpec):
+            raise TypeError("spec must be a SessionSpec")
+        session = build_session(spec)  # the slow part (loading), outside the lock
+        session.warm_up()
+        with lock:
+            dispatcher.add(session)
+        return spec.session_id
+    if command == "remove_session":
+        with lock:
+            return dispatcher.sessions.pop(kwargs["session_id"], None) is not None
+    if command == "restart_stream":
+        with lock:
+            dispatcher.sessions[kwargs["session_id"]].restart_stream()
+        return None
+    raise ValueError(f"unknown command {command!r}")
+
+
+def _send(conn: Connection, status: str, result: object) -> None:
+    try:
+        conn.send((status, result))
+    except (OSError, EOFError):
+        pass
