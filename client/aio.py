@@ -79,14 +79,16 @@ class AsyncBurrClient:
 
     def send(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
              rpm: float = 0.0, spindle_on: bool = True,
-             velocity: Sequence[float] | None = None, flags: int = 0) -> int:
+             velocity: Sequence[float] | None = None, flags: int = 0,
+             t_us: int | None = None) -> int:
         if self._transport is None:
             raise RuntimeError("not connected: use await AsyncBurrClient.connect(...)")
         seq = self.seq
         self.seq = seq_next(seq)
         if self._rules._newest is None:  # until the server has answered (see BurrClient.send)
             flags |= FLAG_NEW_STREAM
-        pose = Pose(self.session, seq, now_us(), tuple(position), tuple(orientation),  # type: ignore[arg-type]
+        t_client = now_us() if t_us is None else t_us
+        pose = Pose(self.session, seq, t_client, tuple(position), tuple(orientation),  # type: ignore[arg-type]
                     rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
                     flags)
         self._transport.sendto(encode_pose(pose, self.tagger))

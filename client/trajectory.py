@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..proto.messages import Notice
-from .udp import IDENTITY, BurrClient, Result
+from .udp import IDENTITY, BurrClient, Result, now_us
 
 #: Sleep until this close to a send time, then spin (sleep overshoots by ~0.1 ms or more).
 SPIN_S = 0.0005
@@ -52,8 +52,9 @@ class StreamResult:
 def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1000.0,
            on_result: Callable[[int, Result], None] | None = None,
            linger_s: float = 0.05) -> StreamResult:
-    """Send ``waypoints`` at ``rate_hz`` on an absolute schedule (no drift), collecting
-    replies as they arrive between sends; waits ``linger_s`` after the last send for stragglers.
+    """Send ``waypoints`` at ``rate_hz`` on an absolute schedule (no drift), each stamped with
+    its scheduled time, collecting replies as they arrive between sends; waits ``linger_s``
+    after the last send for stragglers.
 
     ``on_result(index, result)`` is called as each reply arrives (keep it short: it runs
     between sends).
@@ -83,6 +84,7 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
                     on_result(i, message)
 
     start = time.perf_counter()
+    start_us = now_us()
     for k, w in enumerate(waypoints):
         due = start + k * period
         now = time.perf_counter()
@@ -90,7 +92,9 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
             out.late_sends += 1
         elif due > now:
             collect(due)
-        seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None, w.flags)
+        # Stamped with its scheduled time: a late send must not look like a faster motion.
+        seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None, w.flags,
+                          start_us + round(k * period * 1e6))
         index_of[seq] = k
         results.append(None)
         # Index entries of replies that never come must not pile up.

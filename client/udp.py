@@ -105,13 +105,20 @@ class BurrClient:
 
     def send(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
              rpm: float = 0.0, spindle_on: bool = True,
-             velocity: Sequence[float] | None = None, flags: int = 0) -> int:
-        """Send one pose (engine frame and units); returns its sequence number."""
+             velocity: Sequence[float] | None = None, flags: int = 0,
+             t_us: int | None = None) -> int:
+        """Send one pose (engine frame and units); returns its sequence number.
+
+        ``t_us`` is when the pose was sampled, on :func:`now_us`'s clock (default: now). The
+        server estimates velocity from these stamps, so a pose sent late must still carry
+        its own time; the reply's round trip then counts from the sample, not the send.
+        """
         seq = self.seq
         self.seq = seq_next(seq)
         if self._newest is None:  # until the server has answered, every packet may start
             flags |= FLAG_NEW_STREAM
-        pose = Pose(self.session, seq, now_us(), tuple(position), tuple(orientation),  # type: ignore[arg-type]
+        t_client = now_us() if t_us is None else t_us
+        pose = Pose(self.session, seq, t_client, tuple(position), tuple(orientation),  # type: ignore[arg-type]
                     rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
                     flags)
         self.sock.send(encode_pose(pose, self.tagger))
@@ -151,14 +158,14 @@ class BurrClient:
         except ProtocolError:
             self.counters["malformed"] += 1
             return None
-        if self.tagger is not None:
-            # A keyed session's replies are always tagged. Notices are tagged when the server
-            # knows the session; one about an unknown session cannot be, and is passed on.
-            tagged = message.tag is not None
-            if (tagged and not self.tagger.verify(data)) or \
-                    (not tagged and isinstance(message, Reply)):
-                self.counters["bad_tag"] += 1
-                return None
+        if self.tagger is not None and isinstance(message, Reply) and (
+                message.tag is None or not self.tagger.verify(data)):
+            # Replies of a keyed session are always tagged: anything else is forged or
+            # corrupt. Notices are passed on unverified: they carry no force, and one that
+            # says BAD_TAG is tagged with the server's key, which a client with the wrong key
+            # cannot check — yet it must learn that its key is wrong.
+            self.counters["bad_tag"] += 1
+            return None
         self.counters["received"] += 1
         if isinstance(message, Notice):
             self.counters["notices"] += 1

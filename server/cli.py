@@ -112,6 +112,18 @@ def _add_bone(sub: argparse._SubParsersAction) -> None:
     cli_bone.add_parser(sub)
 
 
+def _add_serve(sub: argparse._SubParsersAction) -> None:
+    from . import cli_serve
+
+    cli_serve.add_parser(sub)
+
+
+def _add_client(sub: argparse._SubParsersAction) -> None:
+    from ..client import demo
+
+    demo.add_parser(sub)
+
+
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
@@ -135,6 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_experiment(sub)
     _add_bone(sub)
+    _add_serve(sub)
+    _add_client(sub)
     _add_bench(sub)
     return parser
 

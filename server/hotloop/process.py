@@ -71,6 +71,14 @@ def build_session(spec: SessionSpec) -> Session:
     return Session(spec.session_id, engine, spec.config, spec.key)
 
 
+def bone_info(session: Session) -> dict:
+    """What a client may want to know of a session's bone: voxel size and bounds, mm."""
+    grid = session.engine.grid
+    lo, hi = grid.bounds_mm()
+    return {"voxel_mm": float(min(grid.spacing_mm)), "bounds_mm": [lo.tolist(), hi.tolist()],
+            "version": grid.version}
+
+
 @dataclass(frozen=True)
 class HotLoopConfig:
     """Where the hot loop listens and the sessions it starts with."""
@@ -90,6 +98,8 @@ class HotLoopProcess:
     def __init__(self, config: HotLoopConfig) -> None:
         self.config = config
         self.address: tuple[str, int] | None = None
+        #: Per session id, what its bone is (``bone_info``), once started.
+        self.bones: dict[int, dict] = {}
         self._proc: subprocess.Popen | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
@@ -127,6 +137,7 @@ class HotLoopProcess:
             self._kill()
             raise RuntimeError(message[1])
         self.address = (message[1], message[2])
+        self.bones = message[3]
         return self.address
 
     def call(self, command: str, **kwargs: object) -> object:
@@ -221,7 +232,8 @@ def child_main(conn: Connection) -> None:
     gc.collect()
     gc.freeze()
     host, port = sock.getsockname()[:2]
-    conn.send(("ready", host, port))
+    conn.send(("ready", host, port,
+               {sid: bone_info(s) for sid, s in dispatcher.sessions.items()}))
     commands = threading.Thread(target=_serve_commands,
                                 args=(conn, dispatcher, lock, stopping, sock),
                                 name="burrforce-commands", daemon=True)
