@@ -6,9 +6,7 @@ import asyncio
 from collections import deque
 from collections.abc import Sequence
 
-from ..proto.codec import encode_pose
-from ..proto.messages import FLAG_NEW_STREAM, OK, Notice, Pose, Reply
-from ..proto.sequence import seq_next
+from ..proto.messages import OK, Notice, Reply
 from ..proto.tag import Tagger, parse_key
 from .udp import IDENTITY, BurrClient, Result, ServerError, now_us
 
@@ -41,12 +39,14 @@ class AsyncBurrClient:
         self.session = session
         self.tagger = Tagger(key) if key else None
         self.timeout_s = timeout_s
-        self.seq = first_seq % (1 << 32)
-        # The sync client's acceptance rules (tags, order, counters), without its socket.
+        # The sync client's numbering and acceptance rules (tags, order, counters), without
+        # its socket.
         self._rules = BurrClient.__new__(BurrClient)
         self._rules.session, self._rules.tagger, self._rules._newest = session, self.tagger, None
+        self._rules.seq = first_seq % (1 << 32)
         self._rules.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0,
-                                "stale": 0, "notices": 0, "timeouts": 0}
+                                "stale": 0, "notices": 0, "timeouts": 0,
+                                "foreign": 0}
         self.counters = self._rules.counters
         self._waiting: dict[int, asyncio.Future] = {}
         self._queue: deque[Result | Notice] = deque(maxlen=QUEUE_LIMIT)
@@ -83,15 +83,9 @@ class AsyncBurrClient:
              t_us: int | None = None) -> int:
         if self._transport is None:
             raise RuntimeError("not connected: use await AsyncBurrClient.connect(...)")
-        seq = self.seq
-        self.seq = seq_next(seq)
-        if self._rules._newest is None:  # until the server has answered (see BurrClient.send)
-            flags |= FLAG_NEW_STREAM
-        t_client = now_us() if t_us is None else t_us
-        pose = Pose(self.session, seq, t_client, tuple(position), tuple(orientation),  # type: ignore[arg-type]
-                    rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
-                    flags)
-        self._transport.sendto(encode_pose(pose, self.tagger))
+        seq, datagram = self._rules._datagram(position, orientation, rpm, spindle_on, velocity,
+                                              flags, t_us)
+        self._transport.sendto(datagram)
         self.counters["sent"] += 1
         return seq
 

@@ -88,7 +88,7 @@ class BurrClient:
         self.seq = first_seq % (1 << 32)
         self._newest: int | None = None
         self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
-                         "notices": 0, "timeouts": 0}
+                         "notices": 0, "timeouts": 0, "foreign": 0}
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         # connect(): the kernel then delivers only the server's datagrams to this socket.
@@ -113,17 +113,25 @@ class BurrClient:
         server estimates velocity from these stamps, so a pose sent late must still carry
         its own time; the reply's round trip then counts from the sample, not the send.
         """
-        seq = self.seq
-        self.seq = seq_next(seq)
-        if self._newest is None:  # until the server has answered, every packet may start
-            flags |= FLAG_NEW_STREAM
-        t_client = now_us() if t_us is None else t_us
-        pose = Pose(self.session, seq, t_client, tuple(position), tuple(orientation),  # type: ignore[arg-type]
-                    rpm, spindle_on, None if velocity is None else tuple(velocity),  # type: ignore[arg-type]
-                    flags)
-        self.sock.send(encode_pose(pose, self.tagger))
+        seq, datagram = self._datagram(position, orientation, rpm, spindle_on, velocity, flags,
+                                       t_us)
+        self.sock.send(datagram)
         self.counters["sent"] += 1
         return seq
+
+    def _datagram(self, position: Sequence[float], orientation: Sequence[float], rpm: float,
+                  spindle_on: bool, velocity: Sequence[float] | None, flags: int,
+                  t_us: int | None) -> tuple[int, bytes]:
+        """(seq, encoded POSE): the next sequence number, NEW_STREAM until the server has
+        answered (so a restarted client is not taken for a replay of the old one)."""
+        seq = self.seq
+        self.seq = seq_next(seq)
+        if self._newest is None:
+            flags |= FLAG_NEW_STREAM
+        pose = Pose(self.session, seq, now_us() if t_us is None else t_us,
+                    tuple(position), tuple(orientation), rpm, spindle_on,  # type: ignore[arg-type]
+                    None if velocity is None else tuple(velocity), flags)  # type: ignore[arg-type]
+        return seq, encode_pose(pose, self.tagger)
 
     def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
         """The next verified reply or notice, or None if none arrives within the timeout
@@ -165,6 +173,9 @@ class BurrClient:
             # says BAD_TAG is tagged with the server's key, which a client with the wrong key
             # cannot check — yet it must learn that its key is wrong.
             self.counters["bad_tag"] += 1
+            return None
+        if message.session != self.session:
+            self.counters["foreign"] += 1
             return None
         self.counters["received"] += 1
         if isinstance(message, Notice):

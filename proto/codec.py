@@ -152,10 +152,12 @@ def _floats(v: object, n: int, name: str) -> tuple[float, ...]:
 
 # -- POSE ---------------------------------------------------------------------------------------
 def encode_pose(pose: Pose, tagger: Tagger | None = None) -> bytes:
-    """The datagram of ``pose``, tagged with ``tagger``'s key (None: untagged).
+    """The datagram of ``pose``, tagged with ``tagger``'s key (None: untagged). Ranges (ids,
+    sequence numbers, stamps, flags) are the receiver's to check.
 
     Raises:
-        ValueError: a vector of the wrong length, or a value that is not a number.
+        ValueError: a vector of the wrong length.
+        TypeError: a value that is not a number.
     """
     return _pack_signed(
         (VERSION, POSE, pose.session, pose.seq, pose.t_client_us,

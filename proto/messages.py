@@ -20,8 +20,9 @@ NOTICE = 3  #: server → client: a short error notice (the request was not proc
 # Request flags (bit mask, element 10 of a POSE). Receivers ignore bits they do not know.
 FLAG_RESET_VELOCITY = 1  #: do not estimate velocity from the previous pose (a teleport).
 FLAG_NO_CARVE = 2  #: evaluate the force but remove no bone.
-#: this packet starts a new stream: accept its sequence number whatever came before (a client
-#: sets it on every packet until its first reply arrives).
+#: this packet starts a new stream: accept its sequence number whatever came before, if its
+#: timestamp is later than the last accepted one (a client sets it on every packet until its
+#: first reply arrives).
 FLAG_NEW_STREAM = 4
 
 # Reply status flags (bit mask).
@@ -177,7 +178,9 @@ class Notice(NamedTuple):
     Attributes:
         session, seq, t_client_us: echoed from the request.
         error: an error code (``ERROR_NAMES``).
-        tag: tagged with the session's key when the session is known, else None.
+        tag: tagged with the session's key for BAD_TAG notices (the session is known);
+            None for notices sent before a session was identified (malformed, wrong version
+            or type, unknown session).
     """
 
     session: int

@@ -186,6 +186,17 @@ def test_a_new_stream_starts_with_the_flag_or_after_idling():
     assert s.counters["restarts"] == 2
 
 
+def test_a_replayed_new_stream_datagram_is_stale_by_its_clock():
+    d, s = make()
+    captured = encode_pose(Pose(1, 5, 5_000, (5.0, 0.0, 30.0), (0.0, 0.0, 0.0, 1.0), 0.0, True,
+                                None, FLAG_NEW_STREAM), TAGGER)
+    assert d.handle(captured, T0_NS + 5_000_000) is not None
+    for k in range(6, 50):
+        assert send(d, k, (5.0, 0.0, 30.0)) is not None
+    assert d.handle(captured, T0_NS + 50_000_000) is None  # replayed within the stream
+    assert s.counters["restarts"] == 0 and d.counters["stale"] == 1
+
+
 # -- velocity from client timestamps -----------------------------------------------------------
 def test_velocity_comes_from_client_timestamps_and_resets_on_gaps():
     d, s = make()
@@ -208,9 +219,15 @@ def test_velocity_comes_from_client_timestamps_and_resets_on_gaps():
     assert r.status & STATUS_STALE and s.counters["teleports"] == 1
     r = send(d, 7, (50.001, 0.0, 30.0), t_us=106_000, flags=FLAG_RESET_VELOCITY)
     assert r.status & STATUS_STALE
-    # A velocity the client measured itself is used as it is.
+    # A velocity the client measured itself is used as it is, if plausible.
     r = send(d, 8, (50.0, 0.0, 30.0), t_us=107_000, velocity=(0.0, -2.0, 0.0))
     np.testing.assert_allclose(r.feed_velocity, (0.0, -2.0, 0.0), atol=1e-12)
+    assert not r.status & STATUS_STALE
+    r = send(d, 9, (50.0, 0.0, 30.0), t_us=108_000, velocity=(0.0, -1e5, 0.0))
+    assert r.status & STATUS_STALE and r.feed_velocity == (0.0, 0.0, 0.0)
+    # After a reset, a repeated stamp keeps the (zero, stale) estimate stale.
+    r = send(d, 10, (50.0, 0.0, 30.0), t_us=108_000)
+    assert r.status & STATUS_STALE
 
 
 # -- authentication and bad input ---------------------------------------------------------------

@@ -79,7 +79,7 @@ class Dispatcher:
         tagger = session.tagger
         if tagger is not None and (pose.tag is None or not tagger.verify(data)):
             return self._reject(BAD_TAG, header, len(data), session, t_recv_ns)
-        order = session.admit(pose.seq, t_recv_ns, pose.flags)
+        order = session.admit(pose.seq, t_recv_ns, pose.flags, pose.t_client_us)
         if order != OK:  # stale and duplicate datagrams are never answered (replays)
             counters[ERROR_NAMES[order]] += 1
             return None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import socket
 import threading
 import time
@@ -20,16 +21,20 @@ def open_socket(host: str, port: int) -> socket.socket:
     """A blocking UDP socket bound to (host, port); port 0 picks a free one.
 
     Raises:
-        OSError: the address cannot be bound (in use, not a local address, …).
+        OSError: the address cannot be bound (in use, not a local address, …); the message
+            says which and what to do.
     """
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_DGRAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
         sock.bind((host, port))
-    except OSError:
+    except OSError as exc:
         sock.close()
-        raise
+        hint = (" (is another burrforce serve running? --udp-port 0 picks a free port)"
+                if exc.errno == errno.EADDRINUSE else "")
+        raise OSError(exc.errno, f"cannot listen on UDP {host}:{port}: "
+                                 f"{exc.strerror}{hint}") from None
     return sock
 
 

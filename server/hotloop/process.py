@@ -222,6 +222,10 @@ def child_main(conn: Connection) -> None:
             dispatcher.add(build_session(spec))
         dispatcher.warm_up()
         sock = open_socket(config.host, config.udp_port)
+    except (OSError, ValueError) as exc:  # a bad bone or address: the message says it all
+        conn.send(("error", exc.strerror if isinstance(exc, OSError) and exc.strerror
+                   else str(exc)))
+        return
     except Exception as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return

@@ -150,21 +150,24 @@ class Session:
         """Forget the sequence and velocity state: the next packet starts a new stream."""
         self.last_seq: int | None = None
         self.last_accept_ns = 0
+        self._last_t_client_us = -1
         self._prev_t_us: int | None = None
         self._prev_p = ZERO3
         self._vel = ZERO3
+        self._vel_stale = True
         self.engine.forget_last_carve()
 
     # -- the hot path -----------------------------------------------------------------------
-    def admit(self, seq: int, now_ns: int, flags: int = 0) -> int:
+    def admit(self, seq: int, now_ns: int, flags: int = 0, t_client_us: int = 0) -> int:
         """OK if ``seq`` is the newest this stream has seen, else STALE or DUPLICATE.
 
-        A new stream starts (any ``seq`` accepted) with FLAG_NEW_STREAM, or after the session
-        has been idle for ``idle_restart_s``.
+        A new stream starts (any ``seq`` accepted) after the session has been idle for
+        ``idle_restart_s``, or with FLAG_NEW_STREAM if its timestamp is later than the last
+        accepted one: a captured new-stream datagram replayed later is stale by its clock.
         """
         last = self.last_seq
         if last is not None and seq != last and (
-                flags & FLAG_NEW_STREAM
+                (flags & FLAG_NEW_STREAM and t_client_us > self._last_t_client_us)
                 or now_ns - self.last_accept_ns > self.config.idle_restart_s * 1e9):
             self.counters["restarts"] += 1
             self.restart_stream()
@@ -177,6 +180,7 @@ class Session:
             return STALE
         self.last_seq = seq
         self.last_accept_ns = now_ns
+        self._last_t_client_us = t_client_us
         return OK
 
     def respond(self, pose: Pose, t_recv_ns: int) -> tuple[bytes, int]:
@@ -198,15 +202,20 @@ class Session:
 
     def _velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
         """(velocity in the grid frame, mm/s; stale) from the client's timestamps."""
-        if pose.velocity is not None:
-            self._prev_t_us, self._prev_p = pose.t_client_us, p
-            return self.transform.vector_in(pose.velocity), False
+        if pose.velocity is not None:  # the client measured it: used as it is, if plausible
+            v = self.transform.vector_in(pose.velocity)
+            if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > self._max_speed2:
+                self.counters["teleports"] += 1
+                return self._reset_velocity(pose, p)
+            self._prev_t_us, self._prev_p, self._vel, self._vel_stale = (
+                pose.t_client_us, p, v, False)
+            return v, False
         prev_t = self._prev_t_us
         if prev_t is None or pose.flags & FLAG_RESET_VELOCITY:
             return self._reset_velocity(pose, p)
         dt_us = pose.t_client_us - prev_t
         if dt_us == 0:  # a coarse client clock: keep the estimate, measure over two packets
-            return self._vel, False
+            return self._vel, self._vel_stale
         if dt_us < 0 or dt_us > self._gap_us:
             return self._reset_velocity(pose, p)
         q = self._prev_p
@@ -216,12 +225,13 @@ class Session:
             self.counters["teleports"] += 1
             self.engine.forget_last_carve()
             return self._reset_velocity(pose, p)
-        self._prev_t_us, self._prev_p, self._vel = pose.t_client_us, p, v
+        self._prev_t_us, self._prev_p, self._vel, self._vel_stale = pose.t_client_us, p, v, False
         return v, False
 
     def _reset_velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
         self.counters["velocity_resets"] += 1
-        self._prev_t_us, self._prev_p, self._vel = pose.t_client_us, p, ZERO3
+        self._prev_t_us, self._prev_p, self._vel, self._vel_stale = (
+            pose.t_client_us, p, ZERO3, True)
         return ZERO3, True
 
     def _tick(self, pose: Pose, t_recv_ns: int) -> tuple:
