@@ -107,7 +107,7 @@ class Session:
     """One engine streaming poses to one bone engine.
 
     Owns the sequence state, the velocity estimate and the frame conversion; one
-    :meth:`handle` per accepted datagram. Not thread-safe: the hot loop serializes access.
+    :meth:`respond` per admitted datagram (:meth:`admit` orders them first). Not thread-safe: the hot loop serializes access.
     """
 
     def __init__(self, session_id: int, engine: BoneEngine, config: SessionConfig | None = None,
@@ -127,7 +127,6 @@ class Session:
         self._a = np.zeros(3)
         self._v = np.zeros(3)
         self.configure(config if config is not None else SessionConfig())
-        self.restart_stream()
 
     def configure(self, config: SessionConfig) -> None:
         frame = frames.frame(config.frame)
