@@ -106,8 +106,9 @@ def _unit(name: str, v: tuple[float, ...], n: int = 3) -> tuple[float, ...]:
 class Session:
     """One engine streaming poses to one bone engine.
 
-    Owns the sequence state, the velocity estimate and the frame conversion; one
-    :meth:`respond` per admitted datagram (:meth:`admit` orders them first). Not thread-safe: the hot loop serializes access.
+    Owns the sequence state, the velocity estimate and the frame conversion: :meth:`admit`
+    orders datagrams, :meth:`respond` answers each admitted one. Not thread-safe: the hot loop
+    serializes access.
     """
 
     def __init__(self, session_id: int, engine: BoneEngine, config: SessionConfig | None = None,
