@@ -1,8 +1,8 @@
 """burrforce client: talks to a running burrforce server over its UDP wire protocol."""
 
 from .aio import AsyncBurrClient
-from .trajectory import StreamResult, Waypoint, hold, line, stream
+from .trajectory import StreamResult, Waypoint, line, stream
 from .udp import BurrClient, Result, ServerError
 
 __all__ = ["AsyncBurrClient", "BurrClient", "Result", "ServerError", "StreamResult",
-           "Waypoint", "hold", "line", "stream"]
+           "Waypoint", "line", "stream"]

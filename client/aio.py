@@ -6,9 +6,8 @@ import asyncio
 from collections import deque
 from collections.abc import Sequence
 
-from ..proto.messages import OK, Notice, Reply
-from ..proto.tag import Tagger, parse_key
-from .udp import IDENTITY, BurrClient, Result, ServerError, now_us
+from ..proto.messages import Notice
+from .udp import IDENTITY, Result, SessionRules, now_us
 
 #: Unclaimed replies kept for :meth:`AsyncBurrClient.receive` (oldest dropped first).
 QUEUE_LIMIT = 1024
@@ -34,20 +33,9 @@ class AsyncBurrClient:
 
     def __init__(self, session: int, key: bytes | str | None, timeout_s: float,
                  first_seq: int) -> None:
-        if isinstance(key, str):
-            key = parse_key(key)
-        self.session = session
-        self.tagger = Tagger(key) if key else None
+        self.rules = SessionRules(session, key, first_seq)
+        self.counters = self.rules.counters
         self.timeout_s = timeout_s
-        # The sync client's numbering and acceptance rules (tags, order, counters), without
-        # its socket.
-        self._rules = BurrClient.__new__(BurrClient)
-        self._rules.session, self._rules.tagger, self._rules._newest = session, self.tagger, None
-        self._rules.seq = first_seq % (1 << 32)
-        self._rules.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0,
-                                "stale": 0, "notices": 0, "timeouts": 0,
-                                "foreign": 0}
-        self.counters = self._rules.counters
         self._waiting: dict[int, asyncio.Future] = {}
         self._queue: deque[Result | Notice] = deque(maxlen=QUEUE_LIMIT)
         self._queued = asyncio.Event()
@@ -83,24 +71,17 @@ class AsyncBurrClient:
              t_us: int | None = None) -> int:
         if self._transport is None:
             raise RuntimeError("not connected: use await AsyncBurrClient.connect(...)")
-        seq, datagram = self._rules._datagram(position, orientation, rpm, spindle_on, velocity,
-                                              flags, t_us)
+        seq, datagram = self.rules.datagram(position, orientation, rpm, spindle_on, velocity,
+                                            flags, t_us)
         self._transport.sendto(datagram)
-        self.counters["sent"] += 1
         return seq
 
     def _arrived(self, data: bytes, arrived_us: int) -> None:
-        message = self._rules._accept(data)
-        if message is None:
+        item = self.rules.accept(data, arrived_us)
+        if item is None:
             return
-        if isinstance(message, Reply):
-            rtt = arrived_us - message.t_client_us
-            offset = ((message.t_recv_us - message.t_client_us)
-                      + (message.t_send_us - arrived_us)) / 2.0
-            item: Result | Notice = Result(message, float(rtt), offset)
-        else:
-            item = message
-        future = self._waiting.pop(message.seq, None)
+        seq = item.seq if isinstance(item, Notice) else item.reply.seq
+        future = self._waiting.pop(seq, None)
         if future is not None and not future.done():
             future.set_result(item)
             return
@@ -139,8 +120,6 @@ class AsyncBurrClient:
             raise TimeoutError(f"no reply to packet {seq} within {wait:g} s") from None
         finally:
             self._waiting.pop(seq, None)
-        if isinstance(item, Notice):
-            raise ServerError(item.error, seq)
-        if item.reply.error != OK:
-            raise ServerError(item.reply.error, seq)
-        return item
+        result = SessionRules.answer_to(item, seq)
+        assert result is not None  # the future of ``seq`` only ever gets ``seq``'s answer
+        return result

@@ -241,6 +241,8 @@ def plot(run: DemoRun, path: Path) -> Path:
 
 # -- the command --------------------------------------------------------------------------------
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    from ..server.cli_args import float_in, int_in
+
     p = sub.add_parser("client", help="talk to a running server over UDP")
     client_sub = p.add_subparsers(dest="client", metavar="COMMAND", required=True)
     d = client_sub.add_parser(
@@ -251,22 +253,29 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "file `burrforce serve` writes, unless given.")
     d.add_argument("--server", metavar="HOST:PORT",
                    help="the server's UDP endpoint. Default: from the connection file")
-    d.add_argument("--session", type=int, help="session id. Default: from the connection file")
+    d.add_argument("--session", type=int_in(0, (1 << 32) - 1, "session id"),
+                   help="session id. Default: from the connection file")
     d.add_argument("--key", help="session key in hex. Default: from the connection file")
     d.add_argument("--frame", choices=tuple(frames.FRAMES),
                    help="the session's frame. Default: from the connection file, else si_mm")
     d.add_argument("--connection", type=Path, help="connection file to read")
-    d.add_argument("--x-mm", type=float, default=-5.0, help="groove start x, mm. Default -5")
-    d.add_argument("--y-mm", type=float, default=0.0, help="groove y, mm. Default 0")
-    d.add_argument("--length-mm", type=float, default=10.0, help="groove length. Default 10")
-    d.add_argument("--depth-mm", type=float, default=0.5, help="depth of cut. Default 0.5")
-    d.add_argument("--feed-mm-s", type=float, default=5.0, help="feed speed. Default 5")
-    d.add_argument("--rpm", type=float, default=60_000.0, help="spindle speed. Default 60000")
-    d.add_argument("--angle-deg", type=float, default=60.0,
+    d.add_argument("--x-mm", type=float_in(-1e4, 1e4, "x", "mm"), default=-5.0,
+                   help="groove start x, mm. Default -5")
+    d.add_argument("--y-mm", type=float_in(-1e4, 1e4, "y", "mm"), default=0.0,
+                   help="groove y, mm. Default 0")
+    d.add_argument("--length-mm", type=float_in(0.5, 100.0, "groove length", "mm"),
+                   default=10.0, help="groove length, mm. Default 10")
+    d.add_argument("--depth-mm", type=float_in(0.05, 3.0, "depth of cut", "mm"), default=0.5,
+                   help="depth of cut, mm. Default 0.5")
+    d.add_argument("--feed-mm-s", type=float_in(0.1, 100.0, "feed speed", "mm/s"),
+                   default=5.0, help="feed speed, mm/s. Default 5")
+    d.add_argument("--rpm", type=float_in(1000.0, 200_000.0, "spindle speed", "rpm"),
+                   default=60_000.0, help="spindle speed. Default 60000")
+    d.add_argument("--angle-deg", type=float_in(10.0, 90.0, "tool angle", "°"), default=60.0,
                    help="tool angle to the surface, degrees (tilted back). Default 60")
-    d.add_argument("--radius-mm", type=float, default=2.0,
+    d.add_argument("--radius-mm", type=float_in(0.1, 10.0, "burr radius", "mm"), default=2.0,
                    help="the server's burr radius, mm (to find the surface). Default 2")
-    d.add_argument("--voxel-mm", type=float, default=None,
+    d.add_argument("--voxel-mm", type=float_in(1e-3, 10.0, "voxel size", "mm"), default=None,
                    help="the bone's voxel size, mm, to place the surface to within a quarter "
                         "voxel. Default: from the connection file")
     d.add_argument("--plot", type=Path, metavar="PATH", help="also write a PNG of the forces")
@@ -302,13 +311,6 @@ def _endpoint(args: argparse.Namespace) -> tuple[str, int, int, str | None, str,
 
 
 def main(args: argparse.Namespace) -> int:
-    for name, low, high in (("depth_mm", 0.05, 3.0), ("feed_mm_s", 0.1, 100.0),
-                            ("length_mm", 0.5, 100.0), ("rpm", 1000.0, 200_000.0),
-                            ("angle_deg", 10.0, 90.0), ("radius_mm", 0.1, 10.0)):
-        value = getattr(args, name)
-        if not low <= value <= high:
-            raise ValueError(f"--{name.replace('_', '-')} must be in [{low:g}, {high:g}], "
-                             f"got {value:g}")
     host, port, session, key, frame, voxel_mm = _endpoint(args)
 
     def say(text: str) -> None:

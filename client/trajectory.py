@@ -130,13 +130,3 @@ def line(start: Sequence[float], end: Sequence[float], speed: float, rate_hz: fl
     for k in range(steps + 1):
         p = a + (b - a) * (k / steps)
         yield Waypoint((float(p[0]), float(p[1]), float(p[2])), q, rpm, spindle_on)  # type: ignore[arg-type]
-
-
-def hold(position: Sequence[float], seconds: float, rate_hz: float = 1000.0,
-         orientation: Sequence[float] = IDENTITY, rpm: float = 0.0,
-         spindle_on: bool = True) -> Iterator[Waypoint]:
-    """Waypoints that stay at ``position`` for ``seconds``."""
-    p = tuple(float(x) for x in position)
-    q = tuple(float(x) for x in orientation)
-    for _ in range(max(1, round(seconds * rate_hz))):
-        yield Waypoint(p, q, rpm, spindle_on)  # type: ignore[arg-type]

@@ -62,6 +62,89 @@ def now_us() -> int:
     return time.monotonic_ns() // 1000
 
 
+class SessionRules:
+    """What both clients do for one session, without I/O: number and tag outgoing POSEs, and
+    decide which incoming datagrams to believe.
+
+    Replies whose tag does not verify, that are not well-formed, that belong to another
+    session, or that are older than one already accepted are dropped and counted in
+    ``counters`` (``bad_tag``, ``malformed``, ``foreign``, ``stale``).
+    """
+
+    def __init__(self, session: int, key: bytes | str | None, first_seq: int) -> None:
+        if isinstance(key, str):
+            key = parse_key(key)
+        self.session = session
+        self.tagger = Tagger(key) if key else None
+        self.seq = first_seq % (1 << 32)
+        self.newest: int | None = None
+        self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
+                         "notices": 0, "timeouts": 0, "foreign": 0}
+
+    def datagram(self, position: Sequence[float], orientation: Sequence[float], rpm: float,
+                 spindle_on: bool, velocity: Sequence[float] | None, flags: int,
+                 t_us: int | None) -> tuple[int, bytes]:
+        """(seq, encoded POSE): the next sequence number, NEW_STREAM until the server has
+        answered (so a restarted client is not taken for a replay of the old one)."""
+        seq = self.seq
+        self.seq = seq_next(seq)
+        if self.newest is None:
+            flags |= FLAG_NEW_STREAM
+        pose = Pose(self.session, seq, now_us() if t_us is None else t_us,
+                    tuple(position), tuple(orientation), rpm, spindle_on,  # type: ignore[arg-type]
+                    None if velocity is None else tuple(velocity), flags)  # type: ignore[arg-type]
+        self.counters["sent"] += 1
+        return seq, encode_pose(pose, self.tagger)
+
+    def accept(self, data: bytes, arrived_us: int) -> Result | Notice | None:
+        """The datagram (arrived at ``arrived_us``) as a Result or Notice, or None if it is
+        not to be believed."""
+        try:
+            message = decode_server_message(data)
+        except ProtocolError:
+            self.counters["malformed"] += 1
+            return None
+        if self.tagger is not None and isinstance(message, Reply) and (
+                message.tag is None or not self.tagger.verify(data)):
+            # Replies of a keyed session are always tagged: anything else is forged or
+            # corrupt. Notices are passed on unverified: they carry no force, and one that
+            # says BAD_TAG is tagged with the server's key, which a client with the wrong key
+            # cannot check — yet it must learn that its key is wrong.
+            self.counters["bad_tag"] += 1
+            return None
+        if message.session != self.session:
+            self.counters["foreign"] += 1
+            return None
+        self.counters["received"] += 1
+        if isinstance(message, Notice):
+            self.counters["notices"] += 1
+            return message
+        if self.newest is not None and not seq_after(message.seq, self.newest):
+            self.counters["stale"] += 1
+            return None
+        self.newest = message.seq
+        offset = ((message.t_recv_us - message.t_client_us)
+                  + (message.t_send_us - arrived_us)) / 2.0
+        return Result(message, float(arrived_us - message.t_client_us), offset)
+
+    @staticmethod
+    def answer_to(item: Result | Notice, seq: int) -> Result | None:
+        """``item`` if it answers packet ``seq`` (None if it answers another).
+
+        Raises:
+            ServerError: it answers ``seq`` with a notice or an error reply.
+        """
+        if isinstance(item, Notice):
+            if item.seq == seq:
+                raise ServerError(item.error, seq)
+            return None
+        if item.reply.seq != seq:
+            return None
+        if item.reply.error != OK:
+            raise ServerError(item.reply.error, seq)
+        return item
+
+
 class BurrClient:
     """A UDP client for one session.
 
@@ -73,22 +156,15 @@ class BurrClient:
         first_seq: the first sequence number (the server accepts any number to start a
             stream, and again after the session has been idle for a second).
 
-    Replies whose tag does not verify, or that are not well-formed, are dropped and counted
-    in ``counters`` (``bad_tag``, ``malformed``); so are replies older than one already seen
-    (``stale``).
+    Replies are checked as ``SessionRules`` says; ``counters`` counts what was sent,
+    received and dropped.
     """
 
     def __init__(self, host: str, port: int, session: int = 1, key: bytes | str | None = None,
                  timeout_s: float = 0.1, first_seq: int = 1) -> None:
-        if isinstance(key, str):
-            key = parse_key(key)
-        self.session = session
-        self.tagger = Tagger(key) if key else None
+        self.rules = SessionRules(session, key, first_seq)
+        self.counters = self.rules.counters
         self.timeout_s = timeout_s
-        self.seq = first_seq % (1 << 32)
-        self._newest: int | None = None
-        self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
-                         "notices": 0, "timeouts": 0, "foreign": 0}
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         # connect(): the kernel then delivers only the server's datagrams to this socket.
@@ -113,25 +189,10 @@ class BurrClient:
         server estimates velocity from these stamps, so a pose sent late must still carry
         its own time; the reply's round trip then counts from the sample, not the send.
         """
-        seq, datagram = self._datagram(position, orientation, rpm, spindle_on, velocity, flags,
-                                       t_us)
+        seq, datagram = self.rules.datagram(position, orientation, rpm, spindle_on, velocity,
+                                            flags, t_us)
         self.sock.send(datagram)
-        self.counters["sent"] += 1
         return seq
-
-    def _datagram(self, position: Sequence[float], orientation: Sequence[float], rpm: float,
-                  spindle_on: bool, velocity: Sequence[float] | None, flags: int,
-                  t_us: int | None) -> tuple[int, bytes]:
-        """(seq, encoded POSE): the next sequence number, NEW_STREAM until the server has
-        answered (so a restarted client is not taken for a replay of the old one)."""
-        seq = self.seq
-        self.seq = seq_next(seq)
-        if self._newest is None:
-            flags |= FLAG_NEW_STREAM
-        pose = Pose(self.session, seq, now_us() if t_us is None else t_us,
-                    tuple(position), tuple(orientation), rpm, spindle_on,  # type: ignore[arg-type]
-                    None if velocity is None else tuple(velocity), flags)  # type: ignore[arg-type]
-        return seq, encode_pose(pose, self.tagger)
 
     def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
         """The next verified reply or notice, or None if none arrives within the timeout
@@ -148,44 +209,9 @@ class BurrClient:
                 if remaining <= 0.0:
                     return None
                 continue
-            arrived = now_us()
-            message = self._accept(data)
-            if message is None:
-                continue
-            if isinstance(message, Notice):
+            message = self.rules.accept(data, now_us())
+            if message is not None:
                 return message
-            reply = message
-            rtt = arrived - reply.t_client_us
-            offset = ((reply.t_recv_us - reply.t_client_us)
-                      + (reply.t_send_us - arrived)) / 2.0
-            return Result(reply, float(rtt), offset)
-
-    def _accept(self, data: bytes) -> Reply | Notice | None:
-        try:
-            message = decode_server_message(data)
-        except ProtocolError:
-            self.counters["malformed"] += 1
-            return None
-        if self.tagger is not None and isinstance(message, Reply) and (
-                message.tag is None or not self.tagger.verify(data)):
-            # Replies of a keyed session are always tagged: anything else is forged or
-            # corrupt. Notices are passed on unverified: they carry no force, and one that
-            # says BAD_TAG is tagged with the server's key, which a client with the wrong key
-            # cannot check — yet it must learn that its key is wrong.
-            self.counters["bad_tag"] += 1
-            return None
-        if message.session != self.session:
-            self.counters["foreign"] += 1
-            return None
-        self.counters["received"] += 1
-        if isinstance(message, Notice):
-            self.counters["notices"] += 1
-            return message
-        if self._newest is not None and not seq_after(message.seq, self._newest):
-            self.counters["stale"] += 1
-            return None
-        self._newest = message.seq
-        return message
 
     def exchange(self, position: Sequence[float], orientation: Sequence[float] = IDENTITY,
                  rpm: float = 0.0, spindle_on: bool = True,
@@ -198,18 +224,13 @@ class BurrClient:
             ServerError: the server answered with a notice or an error reply.
         """
         seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
-        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        wait = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + wait
         while True:
             message = self.receive(max(deadline - time.monotonic(), 0.0))
             if message is None:
                 self.counters["timeouts"] += 1
-                raise TimeoutError(f"no reply to packet {seq} within "
-                                   f"{self.timeout_s if timeout_s is None else timeout_s:g} s")
-            if isinstance(message, Notice):
-                if message.seq == seq:
-                    raise ServerError(message.error, seq)
-                continue
-            if message.reply.seq == seq:
-                if message.reply.error != OK:
-                    raise ServerError(message.reply.error, seq)
-                return message
+                raise TimeoutError(f"no reply to packet {seq} within {wait:g} s")
+            result = SessionRules.answer_to(message, seq)
+            if result is not None:
+                return result

@@ -13,7 +13,6 @@ import msgpack
 
 from .messages import (
     BAD_TYPE,
-    BAD_VALUE,
     BAD_VERSION,
     MALFORMED,
     MAX_REPLY_BYTES,
@@ -110,7 +109,7 @@ def _unpack(data: bytes, limit: int) -> object:
     if len(data) > limit:
         raise ProtocolError(TOO_BIG, f"{len(data)} bytes, more than the {limit} allowed")
     try:
-        return msgpack.unpackb(data, **_LIMITS)
+        return _unpackb(data, **_LIMITS)
     except Exception as exc:  # any msgpack failure: bad bytes, trailing data, limits
         raise ProtocolError(MALFORMED, f"not one msgpack object: {exc}") from None
 
@@ -318,13 +317,9 @@ def decode_server_message(data: bytes) -> Reply | Notice:
 
 
 def read_header(data: bytes) -> tuple[int, int, int, int, int] | None:
-    """(version, type, session, seq, t_client_us) of any datagram, or None."""
+    """(version, type, session, seq, t_client_us) of any datagram, or None (for tools and
+    logs: which session and packet a datagram claims to be)."""
     try:
         return _header(_unpack(data, max(MAX_REQUEST_BYTES, MAX_REPLY_BYTES)))
     except ProtocolError:
         return None
-
-
-__all__ = ["BAD_VALUE", "ProtocolError", "check_pose_values", "decode_pose",
-           "decode_server_message", "encode_notice", "encode_pose", "encode_reply",
-           "read_header"]

@@ -140,10 +140,9 @@ class Transform:
 
     def vector_in(self, v: Vec3) -> Vec3:
         """A velocity or displacement: engine units → mm on the target's axes."""
-        (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = self._a
+        x, y, z = self.direction_in(v)
         s = self.scale
-        x, y, z = v[0] * s, v[1] * s, v[2] * s
-        return (a0 * x + a1 * y + a2 * z, a3 * x + a4 * y + a5 * z, a6 * x + a7 * y + a8 * z)
+        return (x * s, y * s, z * s)
 
     def direction_in(self, d: Vec3) -> Vec3:
         """A direction (unitless): engine axes → target axes."""

@@ -165,9 +165,6 @@ class Reply(NamedTuple):
     feed_velocity: tuple[float, float, float]
     tag: bytes | None = None
 
-    def has(self, status_flag: int) -> bool:
-        return bool(self.status & status_flag)
-
     def status_names(self) -> list[str]:
         return [name for bit, name in STATUS_NAMES.items() if self.status & bit]
 

@@ -8,6 +8,7 @@ traffic every few seconds until Ctrl-C or SIGTERM.
 from __future__ import annotations
 
 import argparse
+import functools
 import ipaddress
 import signal
 import time
@@ -73,7 +74,7 @@ def main(args: argparse.Namespace) -> int:
     key = None if key_hex is None else parse_key(key_hex)
     spec = SessionSpec(args.session_id, args.bone, args.voxel_mm, key,
                        SessionConfig(frame=args.frame))
-    say = _printer()
+    say = functools.partial(print, flush=True)
     say(f"loading {args.bone} and warming up the kernels (the first start compiles them: "
         "up to a minute)...")
     hot = HotLoopProcess(HotLoopConfig(args.host, args.udp_port, (spec,)))
@@ -107,12 +108,6 @@ def main(args: argparse.Namespace) -> int:
             connection.remove(conn_path, only_if=conn)
     say("stopped")
     return 0
-
-
-def _printer():
-    def say(text: str) -> None:
-        print(text, flush=True)
-    return say
 
 
 def _report(hot, session_id: int, stopping: list, say) -> None:

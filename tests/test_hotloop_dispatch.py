@@ -336,3 +336,16 @@ def test_handle_never_raises(data):
     out = d.handle(data, T0_NS)
     if out is not None:
         assert isinstance(decode_server_message(out), (Reply, Notice))
+
+
+def test_snapshot_summarizes_tick_times_and_counts():
+    d, _ = make()
+    assert d.snapshot()["sessions"][1]["tick_p50_us"] is None  # nothing timed yet
+    for k in range(1, 21):
+        send(d, k, (5.0 + 0.003 * k, 0.0, 1.5))
+    snap = d.snapshot()
+    stats = snap["sessions"][1]
+    assert snap["counters"]["replied"] == 20 and stats["accepted"] == 20
+    assert 0.0 < stats["tick_p50_us"] <= stats["tick_p99_us"]
+    assert "tick_times_us" not in stats
+    assert stats["removed_mm3"]["cortical"] > 0.0

@@ -18,12 +18,13 @@ import msgpack
 import pytest
 
 from burrforce.client import AsyncBurrClient, BurrClient, ServerError, line, stream
-from burrforce.proto.codec import encode_pose
+from burrforce.proto.codec import decode_server_message, encode_pose
 from burrforce.proto.messages import (
     BAD_TAG,
     FLAG_NEW_STREAM,
     STATUS_CUTTING,
     UNKNOWN_SESSION,
+    Notice,
     Pose,
 )
 from burrforce.proto.tag import Tagger
@@ -187,6 +188,43 @@ def test_fuzz_100k_datagrams_against_the_live_server(server):
         c.exchange((20.0, 4.0, 1.5), rpm=60_000, flags=FLAG_NEW_STREAM)
         r = [c.exchange((20.0 + 0.003 * k, 4.0, 1.5), rpm=60_000) for k in range(1, 50)]
     assert r[-1].reply.error == 0 and r[-1].reply.status & STATUS_CUTTING
+
+
+def test_sessions_are_added_restarted_and_removed_while_the_loop_runs(server):
+    """The commands the control plane will use: a new session answers at once (warmed, its
+    bone's voxel size reported), a stream restart forgets the sequence, removal ends it."""
+    info = server.call("add_session", spec=SessionSpec(9, "phantom:workpiece", 0.5, KEY))
+    assert info == {"voxel_mm": 0.5}
+    with pytest.raises(RuntimeError, match="session 9 exists"):
+        server.call("add_session", spec=SessionSpec(9, "phantom:workpiece", 0.5, KEY))
+    tagger = Tagger(KEY)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.connect(server.address)
+    sock.settimeout(2.0)
+
+    def pose(seq: int) -> bytes:
+        return encode_pose(Pose(9, seq, time.monotonic_ns() // 1000, (5.0, 0.0, 30.0),
+                                (0.0, 0.0, 0.0, 1.0), 0.0, False), tagger)
+
+    try:
+        sock.send(pose(100))
+        assert decode_server_message(sock.recv(2048)).seq == 100
+        sock.send(pose(5))  # stale: never answered
+        with pytest.raises(TimeoutError):
+            sock.settimeout(0.2)
+            sock.recv(2048)
+        server.call("restart_stream", session_id=9)
+        sock.settimeout(2.0)
+        sock.send(pose(5))  # a new stream accepts any sequence number
+        assert decode_server_message(sock.recv(2048)).seq == 5
+        assert server.stats()["sessions"][9]["stale"] == 1
+        assert server.call("remove_session", session_id=9) is True
+        assert server.call("remove_session", session_id=9) is False
+        sock.send(pose(6))
+        notice = decode_server_message(sock.recv(2048))
+        assert isinstance(notice, Notice) and notice.error == UNKNOWN_SESSION
+    finally:
+        sock.close()
 
 
 def test_stop_closes_the_port():

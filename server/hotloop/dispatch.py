@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import AbstractContextManager, nullcontext
 
-from ...proto.codec import ProtocolError, decode_pose, encode_notice
+import numpy as np
+
+from ...proto.codec import ProtocolError, decode_pose, encode_notice, encode_pose
 from ...proto.messages import (
     BAD_TAG,
     ERROR_NAMES,
@@ -17,6 +20,7 @@ from ...proto.messages import (
     OK,
     UNKNOWN_SESSION,
     Notice,
+    Pose,
 )
 from .session import Session
 
@@ -56,9 +60,15 @@ class Dispatcher:
         self.sessions[session.id] = session
 
     def warm_up(self) -> None:
-        """Warm every session's path (``Session.warm_up``) and start counting from zero."""
+        """Run one whole datagram per session through decode, tag, tick and encode (a pose
+        far outside the bone: nothing is carved), so no first packet pays for compiling or
+        importing; then forget it and start counting from zero."""
         for session in self.sessions.values():
-            session.warm_up()
+            far = session.transform.point_out((-1e5, -1e5, -1e5))
+            pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),
+                        session.engine.params.min_cutting_rpm + 1.0, True)
+            self.handle(encode_pose(pose, session.tagger), time.monotonic_ns())
+            session.reset_statistics()
         for name in self.counters:
             self.counters[name] = 0
 
@@ -71,7 +81,7 @@ class Dispatcher:
         except ProtocolError as exc:
             return self._reject(exc.code, exc.header, len(data), None, t_recv_ns)
         except Exception:  # a decoder bug must not stop the loop
-            return self._internal(None, len(data), t_recv_ns)
+            return self._internal(None, t_recv_ns)
         header = (pose.session, pose.seq, pose.t_client_us)
         session = self.sessions.get(pose.session)
         if session is None:
@@ -87,7 +97,7 @@ class Dispatcher:
             out, error = session.respond(pose, t_recv_ns)
         except Exception:
             session.counters["internal"] += 1
-            return self._internal(session, len(data), t_recv_ns, pose)
+            return self._internal(session, t_recv_ns, pose)
         if error != OK:
             counters[ERROR_NAMES[error]] += 1
         counters["replied"] += 1
@@ -100,37 +110,43 @@ class Dispatcher:
         self.counters[ERROR_NAMES[code]] += 1
         if header is None:
             return None
-        notice = encode_notice(Notice(*header, code),
-                               session.tagger if session is not None else None)
-        if len(notice) > size:
-            return None
+        # The rate first: under a flood, suppressed notices are never encoded or signed.
         self._tokens = min(NOTICE_BURST,
                            self._tokens + (now_ns - self._tokens_ns) * 1e-9 * NOTICE_RATE_HZ)
         self._tokens_ns = now_ns
         if self._tokens < 1.0:
             self.counters["notices_suppressed"] += 1
             return None
+        notice = encode_notice(Notice(*header, code),
+                               session.tagger if session is not None else None)
+        if len(notice) > size:
+            return None
         self._tokens -= 1.0
         self.counters["noticed"] += 1
         return notice
 
-    def _internal(self, session: Session | None, size: int, now_ns: int,
-                  pose: object = None) -> bytes | None:
+    def _internal(self, session: Session | None, now_ns: int,
+                  pose: Pose | None = None) -> bytes | None:
+        self.counters["internal"] += 1
         if now_ns - self._internal_logged_ns > INTERNAL_LOG_INTERVAL_S * 1e9:
             self._internal_logged_ns = now_ns
             log.exception("internal error on a datagram (further ones within %.0f s are only "
                           "counted)", INTERNAL_LOG_INTERVAL_S)
         if session is None or pose is None:
-            self.counters["internal"] += 1
             return None
         try:  # zero force with the error, so the client does not keep rendering the last one
-            self.counters["internal"] += 1
-            return session.error_reply(pose, INTERNAL, now_ns)  # type: ignore[arg-type]
+            return session.error_reply(pose, INTERNAL, now_ns)
         except Exception:
-            self.counters["internal"] += 1
             return None
 
-    def snapshot(self) -> dict[str, object]:
-        """Counters and per-session statistics (plain data, picklable)."""
-        return {"counters": dict(self.counters), "time_ns": time.monotonic_ns(),
-                "sessions": {sid: s.stats() for sid, s in self.sessions.items()}}
+    def snapshot(self, lock: AbstractContextManager | None = None) -> dict[str, object]:
+        """Counters and per-session statistics (plain data, picklable). Only the copying
+        holds ``lock`` (the loop's): the quantiles are computed after it is released."""
+        with lock if lock is not None else nullcontext():
+            counters = dict(self.counters)
+            sessions = {sid: s.stats() for sid, s in self.sessions.items()}
+        for stats in sessions.values():
+            times = stats.pop("tick_times_us")
+            stats["tick_p50_us"] = float(np.median(times)) if len(times) else None
+            stats["tick_p99_us"] = float(np.percentile(times, 99)) if len(times) else None
+        return {"counters": counters, "time_ns": time.monotonic_ns(), "sessions": sessions}

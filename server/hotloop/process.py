@@ -72,11 +72,8 @@ def build_session(spec: SessionSpec) -> Session:
 
 
 def bone_info(session: Session) -> dict:
-    """What a client may want to know of a session's bone: voxel size and bounds, mm."""
-    grid = session.engine.grid
-    lo, hi = grid.bounds_mm()
-    return {"voxel_mm": float(min(grid.spacing_mm)), "bounds_mm": [lo.tolist(), hi.tolist()],
-            "version": grid.version}
+    """What a client may want to know of a session's bone: its voxel size, mm."""
+    return {"voxel_mm": float(min(session.engine.grid.spacing_mm))}
 
 
 @dataclass(frozen=True)
@@ -276,17 +273,22 @@ def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lo
 def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
                  lock: threading.Lock) -> object:
     if command == "stats":
-        with lock:
-            return dispatcher.snapshot()
+        return dispatcher.snapshot(lock)
     if command == "add_session":
         spec = kwargs["spec"]
         if not isinstance(spec, SessionSpec):
             raise TypeError("spec must be a SessionSpec")
-        session = build_session(spec)  # the slow part (loading), outside the lock
-        session.warm_up()
+        with lock:
+            if spec.session_id in dispatcher.sessions:
+                raise ValueError(f"session {spec.session_id} exists")
+        # Loading and warming are the slow part: on a dispatcher of its own, outside the lock.
+        session = build_session(spec)
+        probe = Dispatcher()
+        probe.add(session)
+        probe.warm_up()
         with lock:
             dispatcher.add(session)
-        return spec.session_id
+        return bone_info(session)
     if command == "remove_session":
         with lock:
             return dispatcher.sessions.pop(kwargs["session_id"], None) is not None

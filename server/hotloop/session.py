@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...proto import frames
-from ...proto.codec import check_pose_values, encode_pose, encode_reply_values
+from ...proto.codec import check_pose_values, encode_reply_values
 from ...proto.messages import (
     BAD_VALUE,
     DUPLICATE,
@@ -201,26 +201,22 @@ class Session:
              ZERO3, ZERO3, 0.0, 0.0, 0.0, self.engine.grid.version, ZERO3), self.tagger)
 
     def _velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
-        """(velocity in the grid frame, mm/s; stale) from the client's timestamps."""
-        if pose.velocity is not None:  # the client measured it: used as it is, if plausible
+        """(velocity in the grid frame, mm/s; stale): the client's own if it sent one, else
+        from the client's timestamps; either way reset when implausibly fast."""
+        if pose.velocity is not None:
             v = self.transform.vector_in(pose.velocity)
-            if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > self._max_speed2:
-                self.counters["teleports"] += 1
+        else:
+            prev_t = self._prev_t_us
+            if prev_t is None or pose.flags & FLAG_RESET_VELOCITY:
                 return self._reset_velocity(pose, p)
-            self._prev_t_us, self._prev_p, self._vel, self._vel_stale = (
-                pose.t_client_us, p, v, False)
-            return v, False
-        prev_t = self._prev_t_us
-        if prev_t is None or pose.flags & FLAG_RESET_VELOCITY:
-            return self._reset_velocity(pose, p)
-        dt_us = pose.t_client_us - prev_t
-        if dt_us == 0:  # a coarse client clock: keep the estimate, measure over two packets
-            return self._vel, self._vel_stale
-        if dt_us < 0 or dt_us > self._gap_us:
-            return self._reset_velocity(pose, p)
-        q = self._prev_p
-        k = 1e6 / dt_us
-        v = ((p[0] - q[0]) * k, (p[1] - q[1]) * k, (p[2] - q[2]) * k)
+            dt_us = pose.t_client_us - prev_t
+            if dt_us == 0:  # a coarse client clock: keep the estimate, measure over two
+                return self._vel, self._vel_stale
+            if dt_us < 0 or dt_us > self._gap_us:
+                return self._reset_velocity(pose, p)
+            q = self._prev_p
+            k = 1e6 / dt_us
+            v = ((p[0] - q[0]) * k, (p[1] - q[1]) * k, (p[2] - q[2]) * k)
         if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > self._max_speed2:
             self.counters["teleports"] += 1
             self.engine.forget_last_carve()
@@ -304,32 +300,23 @@ class Session:
                 amplitude, frequency, vib_axis, ZERO3, ZERO3, 0.0, 0.0, removed_mm3,
                 engine.grid.version, tf.vector_out(v))
 
-    def warm_up(self) -> None:
-        """Run one whole datagram through decode, tag, tick and encode (a pose far outside
-        the bone: nothing is carved), so no first packet pays for compiling or importing;
-        then forget it."""
-        from .dispatch import Dispatcher
-
-        far = self.transform.point_out((-1e5, -1e5, -1e5))
-        pose = Pose(self.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),
-                    self.engine.params.min_cutting_rpm + 1.0, True)
-        probe = Dispatcher()
-        probe.sessions[self.id] = self
-        probe.handle(encode_pose(pose, self.tagger), time.monotonic_ns())
+    # -- statistics -------------------------------------------------------------------------
+    def reset_statistics(self) -> None:
+        """Forget counters, tick times and the stream (after a warm-up)."""
         for name in self.counters:
             self.counters[name] = 0
         self.ticks_timed = 0
         self.last_force_N = 0.0
         self.restart_stream()
 
-    # -- statistics -------------------------------------------------------------------------
     def tick_times_us(self) -> np.ndarray:
         """The last (up to TICK_TIMES_KEPT) model-stage times, µs."""
         n = min(self.ticks_timed, TICK_TIMES_KEPT)
         return self.tick_ns[:n] / 1e3
 
     def stats(self) -> dict[str, object]:
-        times = self.tick_times_us()
+        """Counters and state, cheap enough to take between two packets; ``tick_times_us``
+        holds the raw model-stage times (``Dispatcher.snapshot`` summarizes them)."""
         return {
             "session": self.id,
             "frame": self.config.frame,
@@ -339,6 +326,5 @@ class Session:
             "removed_mm3": self.engine.removed_mm3_by_material(),
             "forbidden_events": len(self.engine.events),
             "last_force_N": self.last_force_N,
-            "tick_p50_us": float(np.median(times)) if len(times) else None,
-            "tick_p99_us": float(np.percentile(times, 99)) if len(times) else None,
+            "tick_times_us": self.tick_times_us(),
         }
