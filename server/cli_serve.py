@@ -17,7 +17,7 @@ from pathlib import Path
 from ..client import connection
 from ..proto.frames import DEFAULT_FRAME, FRAMES
 from ..proto.tag import new_key, parse_key
-from .cli_args import int_in
+from .cli_args import float_in, int_in
 
 DEFAULT_UDP_PORT = 47810
 STATUS_INTERVAL_S = 2.0
@@ -38,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bone", default=DEFAULT_BONE,
                    help="phantom:NAME (workpiece, layered, temporal) or a bone file. "
                         f"Default {DEFAULT_BONE}")
-    p.add_argument("--voxel-mm", type=float, default=None,
+    p.add_argument("--voxel-mm", type=float_in(1e-3, 10.0, "voxel size", "mm"), default=None,
                    help="a phantom's voxel size, mm. Default per phantom")
     p.add_argument("--frame", choices=tuple(FRAMES), default=DEFAULT_FRAME,
                    help="the engine's frame and units for the session. Default si_mm")
