@@ -112,6 +112,12 @@ def _add_bone(sub: argparse._SubParsersAction) -> None:
     cli_bone.add_parser(sub)
 
 
+def _add_replay(sub: argparse._SubParsersAction) -> None:
+    from . import cli_replay
+
+    cli_replay.add_parser(sub)
+
+
 def _add_serve(sub: argparse._SubParsersAction) -> None:
     from . import cli_serve
 
@@ -150,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_serve(sub)
     _add_client(sub)
     _add_bench(sub)
+    _add_replay(sub)
     return parser
 
 

@@ -209,6 +209,9 @@ class BoneEngine:
         omega = p.spin_sign * rpm * RPM_TO_RAD_S
         cutting = abs(rpm) >= p.min_cutting_rpm
         self._stamp += 1
+        shared = g.shared_header
+        if shared is not None and carve:
+            shared[0] += 1  # odd: voxels being written (shared.SharedBone reads around it)
         removed = bone_tick(
             b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
             b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
@@ -222,6 +225,9 @@ class BoneEngine:
             self._stamp)
         if removed:
             g.version += 1
+        if shared is not None and carve:
+            shared[1] = g.version
+            shared[0] += 1
         if carve and cutting:
             self._previous[:] = centre_g
         self.ticks += 1

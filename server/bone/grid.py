@@ -90,6 +90,10 @@ class BoneGrid:
         count_bricks(self.density, self.swept, self.brick_bone, self.brick_full)
         #: Monotone bone version: bumped by every tick that removed bone.
         self.version = 0
+        #: For a grid in shared memory (``shared.SharedBone``): int64 counters the engine
+        #: updates around each carving tick so another process can read the voxels
+        #: consistently. None for a private grid.
+        self.shared_header: np.ndarray | None = None
 
     @classmethod
     def from_fraction(cls, fraction: np.ndarray, spacing_mm, **kwargs) -> BoneGrid:

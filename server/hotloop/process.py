@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from ..bone import Bone, BoneEngine, ShaftParams, load_bone, phantom
+from ..bone import Bone, BoneEngine, MaterialTable, ShaftParams, load_bone, phantom
 from ..bone.loaders import LoadOptions
+from ..bone.shared import SharedBone, SharedBoneRef
 from ..model.params import CuttingParams
 from .dispatch import Dispatcher
 from .loop import open_socket, serve
@@ -40,7 +41,8 @@ class SessionSpec:
 
     Attributes:
         session_id: unsigned 32-bit id the client puts in every datagram.
-        bone: ``phantom:NAME`` (``bone.PHANTOMS``) or a bone file's path.
+        bone: ``phantom:NAME`` (``bone.PHANTOMS``), a bone file's path, or a bone the
+            control plane has loaded into shared memory (``bone.shared.SharedBoneRef``).
         voxel_mm: a phantom's voxel size, mm (None: the phantom's default).
         key: the session key; None only for loopback development (no tags).
         config: frame, tool axis, features (``SessionConfig``).
@@ -49,7 +51,7 @@ class SessionSpec:
     """
 
     session_id: int = 1
-    bone: str = DEFAULT_BONE
+    bone: str | SharedBoneRef = DEFAULT_BONE
     voxel_mm: float | None = None
     key: bytes | None = None
     config: SessionConfig = field(default_factory=SessionConfig)
@@ -58,6 +60,8 @@ class SessionSpec:
 
 
 def load_session_bone(spec: SessionSpec) -> Bone:
+    if isinstance(spec.bone, SharedBoneRef):
+        return SharedBone(spec.bone, writable=True).bone()
     if spec.bone.startswith(PHANTOM_PREFIX):
         return phantom(spec.bone[len(PHANTOM_PREFIX):], spec.voxel_mm)
     if spec.voxel_mm is not None:
@@ -273,7 +277,37 @@ def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lo
 def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
                  lock: threading.Lock) -> object:
     if command == "stats":
-        return dispatcher.snapshot(lock)
+        return dispatcher.snapshot(lock, kwargs.get("tick_times_since"))
+    if command == "session_state":
+        with lock:
+            session = _session(dispatcher, kwargs["session_id"])
+            events = list(session.engine.events)[-int(kwargs.get("max_events", 100)):]
+            stats = session.stats()
+        stats.pop("tick_times_us")
+        stats["events"] = [e.__dict__ for e in events]
+        return stats
+    if command == "replace_session":
+        # A new bone: built and warmed outside the lock, swapped in between two packets.
+        spec = kwargs["spec"]
+        if not isinstance(spec, SessionSpec):
+            raise TypeError("spec must be a SessionSpec")
+        session = build_session(spec)
+        probe = Dispatcher()
+        probe.add(session)
+        probe.warm_up()
+        with lock:
+            _session(dispatcher, spec.session_id)
+            dispatcher.sessions[spec.session_id] = session
+        return bone_info(session)
+    if command == "configure":
+        config = kwargs["config"]
+        if not isinstance(config, SessionConfig):
+            raise TypeError("config must be a SessionConfig")
+        with lock:
+            _session(dispatcher, kwargs["session_id"]).configure(config)
+        return None
+    if command == "set_engine":
+        return _set_engine(dispatcher, lock, **kwargs)
     if command == "add_session":
         spec = kwargs["spec"]
         if not isinstance(spec, SessionSpec):
@@ -299,8 +333,42 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
     raise ValueError(f"unknown command {command!r}")
 
 
+def _session(dispatcher: Dispatcher, session_id: int) -> Session:
+    try:
+        return dispatcher.sessions[session_id]
+    except KeyError:
+        raise KeyError(f"no session {session_id}") from None
+
+
+def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
+                params: CuttingParams | None = None, shaft: ShaftParams | None = None,
+                materials: MaterialTable | None = None, publish: bool | None = None) -> None:
+    """Change a session's burr, shaft, materials or shared-memory publishing between two
+    packets. Either all of it applies or none (the burr/shaft check runs first)."""
+    with lock:
+        session = _session(dispatcher, session_id)
+        engine = session.engine
+        new_shaft = shaft if shaft is not None else engine.shaft
+        new_params = params if params is not None else engine.params
+        if new_shaft.length_mm > 0 and new_shaft.radius_mm >= new_params.radius_mm:
+            raise ValueError(f"the shaft radius {new_shaft.radius_mm} mm must be smaller than "
+                             f"the burr radius {new_params.radius_mm} mm")
+        engine.shaft = new_shaft
+        engine.params = new_params  # validates against the voxels; resets the carve memory
+        if materials is not None:
+            engine.materials = materials
+        if publish is not None:
+            session.publish_bone(publish)
+        session.configure(session.config)  # picks up the minimum cutting speed
+
+
 def _send(conn: Connection, status: str, result: object) -> None:
     try:
         conn.send((status, result))
     except (OSError, EOFError):
         pass
+    except Exception as exc:  # an unpicklable result must not end the command thread
+        try:
+            conn.send(("error", f"the result could not be sent: {exc}"))
+        except Exception:
+            pass

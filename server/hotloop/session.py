@@ -124,9 +124,13 @@ class Session:
         self.tick_ns = np.zeros(TICK_TIMES_KEPT, dtype=np.int64)
         self.ticks_timed = 0
         self.last_force_N = 0.0
+        #: The bone's shared-memory counters, kept while publishing is off.
+        self._shared_header = engine.grid.shared_header
         self._c = np.zeros(3)
         self._a = np.zeros(3)
         self._v = np.zeros(3)
+        #: A ``record.Recorder`` taking every tick (``Recorder.attach``), or None.
+        self.recorder = None
         self.configure(config if config is not None else SessionConfig())
 
     def configure(self, config: SessionConfig) -> None:
@@ -145,6 +149,11 @@ class Session:
         self._vibration = config.vibration
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
         self.restart_stream()
+
+    def publish_bone(self, on: bool) -> None:
+        """Keep (or stop) the counters that let the control plane read a shared bone while it
+        is cut: two integer writes per carving tick."""
+        self.engine.grid.shared_header = self._shared_header if on else None
 
     def restart_stream(self) -> None:
         """Forget the sequence and velocity state: the next packet starts a new stream."""
@@ -286,6 +295,10 @@ class Session:
             resistive = tuple(out[OUT_COMPONENTS:OUT_COMPONENTS + 3])
             power_w = out[OUT_POWER] * 1e-3
             cut_n = math.sqrt(fx * fx + fy * fy + fz * fz)
+            if self.recorder is not None:
+                self.recorder.record(t_recv_ns, pose, c, a, vv, rpm, carve, engine.out,
+                                     engine.shaft_out, removed_mm3, engine.grid.version,
+                                     status, force, torque)
         amplitude = frequency = 0.0
         vib = self._vibration
         if vib is not None and spindle_on and rpm != 0.0:
@@ -310,9 +323,11 @@ class Session:
         self.restart_stream()
 
     def tick_times_us(self) -> np.ndarray:
-        """The last (up to TICK_TIMES_KEPT) model-stage times, µs."""
-        n = min(self.ticks_timed, TICK_TIMES_KEPT)
-        return self.tick_ns[:n] / 1e3
+        """The last (up to TICK_TIMES_KEPT) model-stage times, oldest first, µs."""
+        n = self.ticks_timed
+        if n <= TICK_TIMES_KEPT:
+            return self.tick_ns[:n] / 1e3
+        return np.roll(self.tick_ns, -(n % TICK_TIMES_KEPT)) / 1e3
 
     def stats(self) -> dict[str, object]:
         """Counters and state, cheap enough to take between two packets; ``tick_times_us``
@@ -326,5 +341,6 @@ class Session:
             "removed_mm3": self.engine.removed_mm3_by_material(),
             "forbidden_events": len(self.engine.events),
             "last_force_N": self.last_force_N,
+            "ticks_timed": self.ticks_timed,
             "tick_times_us": self.tick_times_us(),
         }
