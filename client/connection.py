@@ -17,8 +17,8 @@ ENV_VAR = "BURRFORCE_CONNECTION"
 
 @dataclass(frozen=True)
 class Connection:
-    """A session's endpoint: UDP host and port, session id, key (hex, or None), frame, and
-    the bone's voxel size (mm) when known."""
+    """A session's endpoint: UDP host and port, session id, key (hex, or None), frame, the
+    bone's voxel size (mm) when known, and the REST control plane's URL and bearer token."""
 
     host: str
     udp_port: int
@@ -26,6 +26,8 @@ class Connection:
     key_hex: str | None
     frame: str
     voxel_mm: float | None = None
+    http_url: str | None = None
+    token: str | None = None
 
 
 def default_path() -> Path:
@@ -39,7 +41,8 @@ def default_path() -> Path:
 
 
 def write(connection: Connection, path: Path | None = None) -> Path:
-    """Write atomically, readable by this user only (it holds the session key)."""
+    """Write atomically, readable by this user only (it holds the session key and the REST
+    token)."""
     path = path or default_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -64,7 +67,9 @@ def read(path: Path | None = None) -> Connection:
         return Connection(str(data["host"]), int(data["udp_port"]), int(data["session"]),
                           None if data["key_hex"] is None else str(data["key_hex"]),
                           str(data["frame"]),
-                          None if data.get("voxel_mm") is None else float(data["voxel_mm"]))
+                          None if data.get("voxel_mm") is None else float(data["voxel_mm"]),
+                          None if data.get("http_url") is None else str(data["http_url"]),
+                          None if data.get("token") is None else str(data["token"]))
     except FileNotFoundError:
         raise ValueError(f"no connection file at {path}: is `burrforce serve` running? "
                          "(or give --server, --session and --key)") from None

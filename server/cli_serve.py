@@ -1,8 +1,9 @@
-"""``burrforce serve``: the hot loop on a bone, with one session ready for an engine.
+"""``burrforce serve``: the hot loop (its own process) and the REST control plane (this one).
 
-The REST control plane joins this command later; today it starts the UDP hot loop (its own
-process), prints how to connect, writes the connection file for local clients, and reports
-traffic every few seconds until Ctrl-C or SIGTERM.
+Starts the UDP hot loop, loads a bone into a default session through the control plane, serves
+REST with uvicorn, prints the endpoints, writes the connection file for local clients, and
+reports traffic every few seconds until Ctrl-C or SIGTERM. ``--demo`` also runs the client demo
+against it.
 """
 
 from __future__ import annotations
@@ -10,47 +11,72 @@ from __future__ import annotations
 import argparse
 import functools
 import ipaddress
+import os
+import secrets
 import signal
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 
 from ..client import connection
-from ..proto.frames import DEFAULT_FRAME, FRAMES
-from ..proto.tag import new_key, parse_key
+from ..proto.frames import FRAMES
+from ..proto.tag import parse_key
+from .api.config import DEFAULT_HTTP_PORT, DEFAULT_UDP_PORT, ServeConfig, load_config
 from .cli_args import float_in, int_in
 
-DEFAULT_UDP_PORT = 47810
 STATUS_INTERVAL_S = 2.0
+TOKEN_FILE = "token"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from .hotloop import DEFAULT_BONE
-
     p = sub.add_parser(
-        "serve", help="run the haptic force server (UDP hot loop) on a bone",
-        description="Start the UDP hot loop on a bone with one session, print its endpoint "
-                    "and key, and report traffic until Ctrl-C. Engines stream poses to it "
-                    "(proto/SPEC.md); `burrforce client demo` cuts a groove in it.")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on. Default 127.0.0.1 (this machine only)")
-    p.add_argument("--udp-port", type=int_in(0, 65535, "UDP port"), default=DEFAULT_UDP_PORT,
+        "serve", help="run the haptic force server: UDP hot loop + REST control plane",
+        description="Start the UDP hot loop and the REST control plane, load a bone into "
+                    "session 1, print the endpoints, key and token, and report traffic until "
+                    "Ctrl-C. Engines stream poses over UDP (proto/SPEC.md); the REST API "
+                    "(/docs) creates sessions, loads bones, sets Us and K and exports the "
+                    "carved bone. Settings: flags, else BURRFORCE_* variables, else --config "
+                    "TOML, else defaults.")
+    p.add_argument("--config", type=Path, default=None, metavar="TOML",
+                   help="a TOML configuration file ([server] and [session] tables)")
+    p.add_argument("--host", default=None,
+                   help="address for REST and UDP. Default 127.0.0.1 (this machine only)")
+    p.add_argument("--http-port", type=int_in(0, 65535, "HTTP port"), default=None,
+                   help=f"REST port (0: any free one). Default {DEFAULT_HTTP_PORT}")
+    p.add_argument("--udp-port", type=int_in(0, 65535, "UDP port"), default=None,
                    help=f"UDP port (0: any free one). Default {DEFAULT_UDP_PORT}")
-    p.add_argument("--bone", default=DEFAULT_BONE,
-                   help="phantom:NAME (workpiece, layered, temporal) or a bone file. "
-                        f"Default {DEFAULT_BONE}")
+    p.add_argument("--bone", default=None,
+                   help="the default session's bone: phantom:NAME (workpiece, layered, "
+                        "temporal) or a bone file. Default phantom:temporal")
     p.add_argument("--voxel-mm", type=float_in(1e-3, 10.0, "voxel size", "mm"), default=None,
                    help="a phantom's voxel size, mm. Default per phantom")
-    p.add_argument("--frame", choices=tuple(FRAMES), default=DEFAULT_FRAME,
-                   help="the engine's frame and units for the session. Default si_mm")
-    p.add_argument("--session-id", type=int_in(0, (1 << 32) - 1, "session id"), default=1,
-                   help="the session's id. Default 1")
+    p.add_argument("--kind", choices=("ct", "labels", "density"), default=None,
+                   help="what a --bone file's voxels are (needed for npy, npz, NRRD, NIfTI, "
+                        "PNG)")
+    p.add_argument("--frame", choices=tuple(FRAMES), default=None,
+                   help="the engine's frame and units for the default session. Default si_mm")
+    p.add_argument("--session-id", type=int_in(0, (1 << 32) - 1, "session id"), default=None,
+                   help="the default session's id. Default 1")
     auth = p.add_mutually_exclusive_group()
-    auth.add_argument("--key", help="the session key in hex. Default: a fresh random key")
-    auth.add_argument("--no-auth", action="store_true",
-                      help="no key, untagged datagrams (loopback only, for development)")
+    auth.add_argument("--key", default=None,
+                      help="the default session's key in hex. Default: a fresh random key")
+    auth.add_argument("--no-auth", action="store_true", default=None,
+                      help="no key for the default session: untagged datagrams (loopback "
+                           "only, for development)")
+    p.add_argument("--token", default=None,
+                   help="the REST bearer token. Default: generated at the first start, kept "
+                        "in DATA_DIR/token and shown once")
+    p.add_argument("--data-dir", type=Path, default=None,
+                   help="uploads, snapshots, recordings. Default ~/.local/share/burrforce")
+    p.add_argument("--bone-library", type=Path, default=None,
+                   help="a folder of bone files sessions may load as library:PATH")
     p.add_argument("--connection-file", type=Path, default=None,
                    help=f"where to write the connection file. Default "
                         f"{connection.default_path()}")
+    p.add_argument("--demo", action="store_true",
+                   help="once ready, cut a groove with `burrforce client demo` so forces flow")
     p.set_defaults(func=main)
 
 
@@ -63,46 +89,115 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def main(args: argparse.Namespace) -> int:
-    from .hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
-
-    if args.no_auth and not _is_loopback(args.host):
-        raise ValueError(f"--no-auth is for loopback development; {args.host} is reachable "
-                         "from other machines, so its session needs a key")
-    key_hex = None if args.no_auth else (args.key.strip().lower() if args.key
-                                         else new_key().hex())
-    key = None if key_hex is None else parse_key(key_hex)
-    spec = SessionSpec(args.session_id, args.bone, args.voxel_mm, key,
-                       SessionConfig(frame=args.frame))
-    say = functools.partial(print, flush=True)
-    say(f"loading {args.bone} and warming up the kernels (the first start compiles them: "
-        "up to a minute)...")
-    hot = HotLoopProcess(HotLoopConfig(args.host, args.udp_port, (spec,)))
-    t0 = time.monotonic()
-    host, port = hot.start()
-    stopping = []
-
-    def stop(signum: int, frame: object) -> None:
-        stopping.append(signum)
-
-    old_term = signal.signal(signal.SIGTERM, stop)
-    conn = connection.Connection(host, port, args.session_id, key_hex, args.frame,
-                                 hot.bones[args.session_id]["voxel_mm"])
-    conn_path = None
+def resolve_token(config: ServeConfig) -> tuple[str, bool]:
+    """(token, new): the configured one, else the one kept in the data directory, else a
+    fresh one saved there (readable by this user only) and shown once."""
+    if config.token:
+        return config.token, False
+    path = Path(config.data_dir).expanduser() / TOKEN_FILE
     try:
-        conn_path = connection.write(conn, args.connection_file)
-        say(f"ready in {time.monotonic() - t0:.1f} s: UDP {host}:{port}, session "
-            f"{args.session_id}, frame {args.frame}")
-        say(f"session key: {key_hex}" if key_hex else
-            "no key: datagrams are not tagged (loopback development)")
-        say(f"connection file: {conn_path}")
-        say("try it:   burrforce client demo        (Ctrl-C stops the server)")
-        _report(hot, args.session_id, stopping, say)
-    except KeyboardInterrupt:
+        token = path.read_text().strip()
+        if len(token) >= 16:
+            return token, False
+    except FileNotFoundError:
         pass
+    except OSError as exc:
+        raise OSError(f"cannot read the token file {path}: {exc.strerror}") from None
+    token = secrets.token_urlsafe(24)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    return token, True
+
+
+def main(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .api.app import create_app
+    from .api.manager import ControlPlane, start_hot_loop
+    from .api.metrics import LoopStats
+    from .api.models import Features, Parameters
+
+    flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
+             "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
+             "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
+             "token": args.token, "data_dir": args.data_dir,
+             "bone_library": args.bone_library}
+    config = load_config(args.config, flags)
+    if config.no_auth and not _is_loopback(config.host):
+        raise ValueError(f"--no-auth is for loopback development; {config.host} is reachable "
+                         "from other machines, so its session needs a key")
+    key_hex = None
+    if not config.no_auth:
+        key_hex = parse_key(config.key).hex() if config.key else None
+    token, new_token = resolve_token(config)
+    bone = config.bone
+    if not bone.startswith(("phantom:", "library:", "upload:", "snapshot:")):
+        bone = str(Path(bone).expanduser().resolve())
+    say = functools.partial(print, flush=True)
+    say(f"loading {config.bone} and warming up the kernels (the first start compiles them: "
+        "up to a minute)...")
+    t0 = time.monotonic()
+    hot = start_hot_loop(config)
+    plane = stats = None
+    conn_path = conn = None
+    try:
+        plane = ControlPlane(config, hot)
+        if bone.startswith("phantom:"):
+            source = plane.resolve(bone, None, config.voxel_mm)
+        elif bone.startswith(("library:", "upload:", "snapshot:")):
+            source = plane.resolve(bone, args.kind)
+        else:
+            source = _file_source(bone, args.kind)
+        session, job = plane.create_session(
+            config.session_id, source, Parameters(frame=config.frame), Features(),
+            authenticated=not config.no_auth, key_hex=key_hex)
+        while plane.jobs[job.id].state in ("queued", "running"):
+            time.sleep(0.02)
+        if session.state != "ready":
+            raise ValueError(f"cannot load {config.bone}: {session.error}")
+        stats = LoopStats(lambda since: hot.call("stats", tick_times_since=since))
+        stats.poll()
+        stats.start()
+        app = create_app(plane, token, stats)
+        server = uvicorn.Server(uvicorn.Config(app, host=config.host, port=config.http_port,
+                                               log_level="warning", access_log=False))
+        done = threading.Event()
+        context = {}
+
+        def announce() -> None:
+            while not server.started and not done.wait(0.02):
+                pass
+            if not server.started:
+                return
+            port = server.servers[0].sockets[0].getsockname()[1]
+            url = f"http://{_url_host(config.host)}:{port}"
+            udp_host, udp_port = hot.address
+            c = connection.Connection(udp_host, udp_port, session.id, session.key_hex,
+                                      session.config.frame,
+                                      (session.bone_info or {}).get("voxel_mm"), url, token)
+            context["conn"] = c
+            context["path"] = connection.write(c, args.connection_file)
+            _banner(say, time.monotonic() - t0, url, c, token, new_token, config,
+                    context["path"])
+            if args.demo:
+                _run_demo(say, context["path"], done)
+            _report(stats, session.id, done, say)
+
+        threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
+        server.run()  # until SIGINT/SIGTERM (uvicorn handles both)
+        # A second Ctrl-C must not cut the clean-up short (it is bounded by timeouts).
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        done.set()
+        conn, conn_path = context.get("conn"), context.get("path")
     finally:
-        signal.signal(signal.SIGTERM, old_term)
-        say("stopping...")
+        say("stopping: sessions removed, hot loop stopped...")
+        if stats is not None:
+            stats.stop()
+        if plane is not None:
+            plane.close()
         hot.stop()
         if conn_path is not None:
             connection.remove(conn_path, only_if=conn)
@@ -110,23 +205,75 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _report(hot, session_id: int, stopping: list, say) -> None:
-    """A status line every few seconds while packets arrive; returns on SIGTERM."""
-    last_received = 0
+def _file_source(path: str, kind: str | None):
+    """A --bone file given on the command line: any path the user can read (REST sources are
+    confined to the library; the command line is the operator's own)."""
+    from .api.sources import SELF_DESCRIBING, BoneSource
+    from .bone.loaders import detect_format
+
+    fmt = detect_format(path)
+    if kind is None and fmt not in SELF_DESCRIBING:
+        raise ValueError(f"{path} is a {fmt} file whose voxels could be CT numbers, labels "
+                         "or densities: say which with --kind ct|labels|density")
+    return BoneSource(f"file:{path}", Path(path), kind)
+
+
+def _url_host(host: str) -> str:
+    if host in ("0.0.0.0", "::"):
+        return "127.0.0.1"
+    return f"[{host}]" if ":" in host else host
+
+
+def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
+            new_token: bool, config: ServeConfig, conn_path: Path) -> None:
+    say(f"ready in {elapsed_s:.1f} s")
+    say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, "
+        + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
+    say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")
+    if new_token:
+        say(f"  token {token}   (new: shown only now; kept in "
+            f"{Path(config.data_dir).expanduser() / TOKEN_FILE})")
+    elif config.token:
+        say("  token as configured")
+    else:
+        say(f"  token in {Path(config.data_dir).expanduser() / TOKEN_FILE}")
+    say(f"  connection file {conn_path}")
+    say("try:  burrforce client demo          (cuts a groove and prints the forces)")
+    say(f"      curl -H \"Authorization: Bearer $TOKEN\" -X PATCH -H 'Content-Type: "
+        f"application/json' -d '{{\"us_n_mm2\": 1610}}' {url}/v1/sessions/{c.session}/"
+        "parameters")
+    say(f"      curl -H \"Authorization: Bearer $TOKEN\" -o bone.stl "
+        f"{url}/v1/sessions/{c.session}/export/mesh")
+    say("Ctrl-C stops the server.")
+
+
+def _run_demo(say, conn_path: Path, done: threading.Event) -> None:
+    say("--demo: running `burrforce client demo` against this server...")
+    env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
+    proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo"],
+                            env=env, stdin=subprocess.DEVNULL)
+    while proc.poll() is None:
+        if done.wait(0.1):
+            proc.terminate()
+            proc.wait()
+            return
+    say(f"--demo finished (exit {proc.returncode}); the server keeps running.")
+
+
+def _report(stats, session_id: int, done: threading.Event, say) -> None:
+    """A status line every few seconds while packets arrive."""
+    last_received = None
     last_t = time.monotonic()
-    while not stopping:
-        time.sleep(0.1)
-        if time.monotonic() - last_t < STATUS_INTERVAL_S:
+    while not done.wait(STATUS_INTERVAL_S):
+        latest = stats.latest
+        if latest is None:
             continue
-        if not hot.is_alive():
-            raise RuntimeError("the hot-loop process died; see the messages above")
-        stats = hot.stats()
         now = time.monotonic()
-        counters = stats["counters"]
+        counters = latest["counters"]
         received = counters["received"]
-        if received != last_received:
+        if last_received is not None and received != last_received:
             rate = (received - last_received) / (now - last_t)
-            s = stats["sessions"].get(session_id, {})
+            s = latest["sessions"].get(session_id, {})
             removed = sum(s.get("removed_mm3", {}).values()) if s else 0.0
             drops = {k: v for k, v in counters.items()
                      if v and k not in ("received", "replied", "noticed")}

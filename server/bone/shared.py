@@ -22,8 +22,10 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -32,6 +34,7 @@ from .bricks import BRICK, brick_shape
 from .grid import BoneGrid
 from .materials import Material, MaterialTable
 
+T = TypeVar("T")
 PAGE = 4096
 #: Header slots (int64).
 H_SEQ = 0  # odd while the hot loop writes voxels
@@ -164,6 +167,7 @@ class SharedBone:
         self.brick_version = np.frombuffer(m, np.int64, int(np.prod(bshape)),
                                            b_off).reshape(bshape)
         self.writable = writable
+        self._view: BoneGrid | None = None
 
     @property
     def version(self) -> int:
@@ -220,6 +224,31 @@ class SharedBone:
                 out[sl] = self.swept[sl]
         return out, version
 
+    def read_consistently(self, read: Callable[[BoneGrid], T], timeout_s: float = 5.0,
+                          attempts: int = 50) -> T:
+        """``read(view)`` on a read-only grid over the mapped voxels, run again until it falls
+        between two carving ticks (for small reads: a brick delta, a few voxels). The view's
+        ``version`` is the version the result is exact for.
+
+        Raises:
+            TimeoutError: every attempt overlapped a carving tick.
+        """
+        if self._view is None:
+            ref = self.ref
+            view = BoneGrid(self.density, ref.spacing_mm, origin_mm=ref.origin_mm,
+                            direction=np.array(ref.direction), labels=self.labels,
+                            swept=self.swept)
+            view.brick_version = self.brick_version
+            self._view = view
+        deadline = time.monotonic() + timeout_s
+        for _ in range(attempts):
+            seq = self._even(deadline)
+            self._view.version = int(self.header[H_VERSION])
+            result = read(self._view)
+            if int(self.header[H_SEQ]) == seq:
+                return result
+        raise TimeoutError("the bone changed during every read; try again")
+
     def snapshot(self, timeout_s: float = 5.0) -> Bone:
         """A private, consistent copy of the bone as it is now (the loop keeps running)."""
         swept, version = self.consistent_swept(timeout_s)
@@ -233,7 +262,7 @@ class SharedBone:
 
     def close(self) -> None:
         """Unmap (the arrays handed out must not be used afterwards)."""
-        for name in ("header", "density", "labels", "swept", "brick_version"):
+        for name in ("header", "density", "labels", "swept", "brick_version", "_view"):
             setattr(self, name, None)
         try:
             self._map.close()

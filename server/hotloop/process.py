@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
 
+import numpy as np
+
 from ..bone import Bone, BoneEngine, MaterialTable, ShaftParams, load_bone, phantom
 from ..bone.loaders import LoadOptions
 from ..bone.shared import SharedBone, SharedBoneRef
@@ -48,6 +50,9 @@ class SessionSpec:
         config: frame, tool axis, features (``SessionConfig``).
         params: burr radius, spin, minimum cutting speed.
         shaft: the shaft's geometry.
+        materials: the material table (None: the bone's own).
+        publish: for a shared bone, keep the counters that let the control plane read it
+            while it is cut.
     """
 
     session_id: int = 1
@@ -57,6 +62,8 @@ class SessionSpec:
     config: SessionConfig = field(default_factory=SessionConfig)
     params: CuttingParams = field(default_factory=CuttingParams)
     shaft: ShaftParams = field(default_factory=ShaftParams)
+    materials: MaterialTable | None = None
+    publish: bool = True
 
 
 def load_session_bone(spec: SessionSpec) -> Bone:
@@ -71,8 +78,11 @@ def load_session_bone(spec: SessionSpec) -> Bone:
 
 def build_session(spec: SessionSpec) -> Session:
     bone = load_session_bone(spec)
-    engine = BoneEngine(bone.grid, bone.materials, spec.params, spec.shaft)
-    return Session(spec.session_id, engine, spec.config, spec.key)
+    materials = spec.materials if spec.materials is not None else bone.materials
+    engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft)
+    session = Session(spec.session_id, engine, spec.config, spec.key)
+    session.publish_bone(spec.publish)
+    return session
 
 
 def bone_info(session: Session) -> dict:
@@ -308,6 +318,18 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
         return None
     if command == "set_engine":
         return _set_engine(dispatcher, lock, **kwargs)
+    if command == "start_recording":
+        return _start_recording(dispatcher, lock, **kwargs)
+    if command in ("stop_recording", "recording_status"):
+        with lock:
+            session = _session(dispatcher, kwargs["session_id"])
+            recorder = session.recorder
+            if recorder is not None and command == "stop_recording":
+                recorder.detach()
+        if recorder is None:
+            return None
+        # Closing writes the last chunk: outside the lock, the loop goes on meanwhile.
+        return recorder.close() if command == "stop_recording" else recorder.status()
     if command == "add_session":
         spec = kwargs["spec"]
         if not isinstance(spec, SessionSpec):
@@ -360,6 +382,39 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
         if publish is not None:
             session.publish_bone(publish)
         session.configure(session.config)  # picks up the minimum cutting speed
+
+
+def _start_recording(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
+                     path: str, snapshot_version: int, bone_name: str = "",
+                     max_bytes: int = 2 << 30) -> dict:
+    """Attach a recorder between two packets. The control plane has written the bone at
+    ``snapshot_version`` as the start snapshot; bricks carved since then are copied here, under
+    the lock, into the recording's start patch so the replay starts from the exact bone."""
+    from ..bone.bricks import BRICK
+    from ..record.format import PATCH_NAME, SNAPSHOT_NAME
+    from ..record.recorder import Recorder, session_meta
+
+    folder = Path(path)
+    with lock:
+        session = _session(dispatcher, session_id)
+        if session.recorder is not None:
+            raise ValueError(f"session {session_id} is already being recorded")
+        grid = session.engine.grid
+        bricks = np.argwhere(grid.brick_version > snapshot_version)
+        swept = np.zeros((len(bricks), BRICK, BRICK, BRICK), dtype=np.uint8)
+        for n, (bi, bj, bk) in enumerate(bricks.tolist()):
+            block = grid.swept[bi * BRICK:(bi + 1) * BRICK, bj * BRICK:(bj + 1) * BRICK,
+                               bk * BRICK:(bk + 1) * BRICK]
+            swept[n, :block.shape[0], :block.shape[1], :block.shape[2]] = block
+        version = grid.version
+        meta = session_meta(session, bone_name)
+        meta["start_patch"] = {"file": PATCH_NAME, "bricks": len(bricks),
+                               "from_version": int(snapshot_version), "to_version": version}
+        np.savez(folder / PATCH_NAME, bricks=bricks.astype(np.int32), swept=swept,
+                 version=np.int64(version))
+        recorder = Recorder.create(folder, meta, folder / SNAPSHOT_NAME, max_bytes=max_bytes)
+        recorder.attach(session)
+    return {"start_version": version, "patched_bricks": len(bricks)}
 
 
 def _send(conn: Connection, status: str, result: object) -> None:

@@ -80,6 +80,10 @@ ROW_STRUCT = struct.Struct(
 assert ROW_STRUCT.size == ROW_DTYPE.itemsize
 
 
+#: Bricks carved between the start snapshot and the first recorded tick (server recordings).
+PATCH_NAME = "start-patch.npz"
+
+
 class RecordingError(ValueError):
     """A recording that cannot be read: missing, not a recording, or damaged beyond use."""
 

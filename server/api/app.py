@@ -1,0 +1,81 @@
+"""The FastAPI application: authentication, error mapping, health and metrics, the routers."""
+
+from __future__ import annotations
+
+import hmac
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from .. import __version__
+from .manager import ApiError, ControlPlane
+from .metrics import LoopStats, registry
+
+API_PREFIX = "/v1"
+_bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
+
+
+def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
+    """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
+    from . import routes_data, routes_sessions
+
+    def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
+        if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
+                                                          token.encode()):
+            raise ApiError(401, "missing or wrong bearer token (Authorization: Bearer TOKEN; "
+                                "`burrforce serve` printed it, or see its --token)")
+
+    app = FastAPI(
+        title="burrforce control plane", version=__version__,
+        description="Sessions, bones, model parameters, exports and statistics of a burrforce "
+                    "haptic force server. Forces stream over UDP (proto/SPEC.md); this API "
+                    "configures what they are computed from. Units are in field names.",
+    )
+    app.state.plane = plane
+    app.state.stats = stats
+    if plane.config.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=list(plane.config.cors_origins),
+                           allow_methods=["*"], allow_headers=["Authorization",
+                                                               "Content-Type"])
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
+                   "type": e.get("type", "")} for e in exc.errors()]
+        return JSONResponse({"detail": errors}, status_code=422)
+
+    @app.get(API_PREFIX + "/health", tags=["system"])
+    def health() -> dict:
+        """Liveness without a token: is the hot loop running, how many sessions."""
+        alive = plane.hot.is_alive()
+        latest = stats.latest
+        return {"status": "ok" if alive else "hot loop down", "hot_loop": alive,
+                "version": __version__,
+                "sessions": len(plane.sessions),
+                "udp": {"host": plane.hot.address[0], "port": plane.hot.address[1]}
+                if plane.hot.address else None,
+                "packets_received": latest["counters"]["received"] if latest else None}
+
+    reg = registry(stats)
+
+    @app.get("/metrics", tags=["system"], dependencies=[Depends(authorize)],
+             response_class=Response)
+    def metrics() -> Response:
+        """Prometheus text format: packets by outcome, the tick-time histogram, per-session
+        counters, bone versions, removed volume."""
+        return Response(generate_latest(reg), media_type=CONTENT_TYPE_LATEST)
+
+    app.include_router(routes_sessions.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    app.include_router(routes_data.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    return app

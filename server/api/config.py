@@ -1,0 +1,182 @@
+"""The server's configuration: defaults, then a TOML file, then the environment, then flags.
+
+TOML (``burrforce serve --config FILE``)::
+
+    [server]
+    host = "127.0.0.1"          # the REST and UDP address
+    http_port = 47811
+    udp_port = 47810
+    token = "..."               # the REST bearer token; default: generated, shown once
+    data_dir = "~/.local/share/burrforce"   # uploads, snapshots, recordings
+    bone_library = "/srv/bones" # bones sessions may load by name (library:NAME)
+    upload_max_mb = 1024
+    cors_origins = []           # browser origins allowed to call the API (default none)
+
+    [session]                   # the default session serve starts with
+    bone = "phantom:temporal"
+    voxel_mm = 0.2
+    frame = "unity"
+
+Environment variables: ``BURRFORCE_`` + the key in upper case (``BURRFORCE_HTTP_PORT=8080``,
+``BURRFORCE_TOKEN=…``, ``BURRFORCE_BONE=phantom:workpiece``); lists are comma-separated.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+DEFAULT_HTTP_PORT = 47811
+DEFAULT_UDP_PORT = 47810
+ENV_PREFIX = "BURRFORCE_"
+
+
+def default_data_dir() -> Path:
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "burrforce"
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """Everything ``burrforce serve`` needs (see the module docstring for where it comes from).
+
+    Attributes:
+        host: address for both REST and UDP. 127.0.0.1 keeps the server on this machine.
+        http_port, udp_port: ports (0: any free one).
+        token: the REST bearer token; None generates one at start and prints it once.
+        data_dir: uploads, snapshots and recordings live under it.
+        bone_library: a folder of bone files sessions may load as ``library:NAME``.
+        upload_max_mb: the largest bone upload accepted, MB.
+        cors_origins: browser origins allowed to call the API; empty turns CORS off.
+        bone, voxel_mm, frame: the default session's bone and engine frame.
+        session_id: the default session's id.
+        key: the default session's key in hex; None makes a fresh one. ``no_auth`` drops it
+            (loopback development only).
+    """
+
+    host: str = "127.0.0.1"
+    http_port: int = DEFAULT_HTTP_PORT
+    udp_port: int = DEFAULT_UDP_PORT
+    token: str | None = None
+    data_dir: Path = field(default_factory=default_data_dir)
+    bone_library: Path | None = None
+    upload_max_mb: float = 1024.0
+    cors_origins: tuple[str, ...] = ()
+    bone: str = "phantom:temporal"
+    voxel_mm: float | None = None
+    frame: str = "si_mm"
+    session_id: int = 1
+    key: str | None = None
+    no_auth: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("http_port", "udp_port"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 65535:
+                raise ValueError(f"{name} must be a port number 0..65535, got {value!r}")
+        if not (isinstance(self.upload_max_mb, (int, float)) and
+                math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
+            raise ValueError(f"upload_max_mb must be a positive number, got "
+                             f"{self.upload_max_mb!r}")
+        if self.token is not None and len(self.token) < 16:
+            raise ValueError("token must be at least 16 characters (a guessable token is no "
+                             "protection)")
+
+    @property
+    def upload_max_bytes(self) -> int:
+        return int(self.upload_max_mb * (1 << 20))
+
+
+_TYPES = {f.name: f.type for f in fields(ServeConfig)}
+_KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
+                    "upload_max_mb", "cors_origins"),
+         "session": ("bone", "voxel_mm", "frame", "session_id", "key", "no_auth")}
+
+
+def _coerce(name: str, value: object, source: str) -> object:
+    """A TOML or environment value as the field's type; ValueError names where it came from."""
+    kind = _TYPES[name]
+    try:
+        if value is None:
+            return None
+        if "int" in kind and "float" not in kind:
+            if isinstance(value, bool):
+                raise ValueError
+            return int(value)  # type: ignore[arg-type]
+        if "float" in kind:
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)  # type: ignore[arg-type]
+        if "bool" in kind:
+            if isinstance(value, bool):
+                return value
+            text = str(value).strip().lower()
+            if text in ("1", "true", "yes", "on"):
+                return True
+            if text in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        if "Path" in kind:
+            return Path(str(value)).expanduser()
+        if "tuple" in kind:
+            items = value.split(",") if isinstance(value, str) else value
+            if not isinstance(items, (list, tuple)):
+                raise ValueError
+            return tuple(str(x).strip() for x in items if str(x).strip())
+        if not isinstance(value, str):
+            raise ValueError
+        return value
+    except (TypeError, ValueError):
+        raise ValueError(f"{source}: {name} has the wrong type ({value!r})") from None
+
+
+def from_toml(path: Path, base: ServeConfig | None = None) -> ServeConfig:
+    """``base`` (default: the defaults) with what the TOML file sets."""
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as exc:
+        raise ValueError(f"cannot read the config file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path} is not valid TOML: {exc}") from None
+    changes: dict[str, object] = {}
+    for table, value in data.items():
+        if table not in _KEYS or not isinstance(value, dict):
+            raise ValueError(f"{path}: unknown table [{table}] (known: "
+                             f"{', '.join(_KEYS)})")
+        for key, item in value.items():
+            if key not in _KEYS[table]:
+                raise ValueError(f"{path}: unknown key {key!r} in [{table}] (known: "
+                                 f"{', '.join(_KEYS[table])})")
+            changes[key] = _coerce(key, item, str(path))
+    return replace(base or ServeConfig(), **changes)  # type: ignore[arg-type]
+
+
+def from_environment(base: ServeConfig, environ: Mapping[str, str] | None = None
+                     ) -> ServeConfig:
+    """``base`` with what ``BURRFORCE_*`` variables set."""
+    environ = os.environ if environ is None else environ
+    changes = {}
+    for name in _TYPES:
+        value = environ.get(ENV_PREFIX + name.upper())
+        if value is not None and value != "":
+            changes[name] = _coerce(name, value, ENV_PREFIX + name.upper())
+    return replace(base, **changes)  # type: ignore[arg-type]
+
+
+def load_config(path: Path | None = None, flags: Mapping[str, object] | None = None,
+                environ: Mapping[str, str] | None = None) -> ServeConfig:
+    """Defaults ← the TOML file ← the environment ← flags (those not None)."""
+    config = from_toml(path) if path is not None else ServeConfig()
+    config = from_environment(config, environ)
+    changes = {k: v for k, v in (flags or {}).items() if v is not None and k in _TYPES}
+    return replace(config, **changes)  # type: ignore[arg-type]

@@ -1,0 +1,610 @@
+"""The control plane's state: sessions as the user configured them, bone loads, the hot loop.
+
+The hot loop process owns the live sessions; this side keeps what each session *should* be
+(bone source, parameters, features, materials) and sends only the effective settings to the
+loop: a feature turned off becomes a setting the loop skips (no shaft: a zero-length shaft; no
+vibration: no vibration parameters). Bones are loaded here, in a worker thread, and handed to
+the loop through shared memory (``bone.shared``), so a 5-second CT load never runs in the
+loop's interpreter, and exports read the bone without asking the loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import shutil
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ...proto.tag import new_key
+from ..bone import Bone, Material, MaterialTable, ShaftParams
+from ..bone.grid import check_voxel_size
+from ..bone.loaders import BoneFileError, save_bone
+from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
+from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+from ..model.params import CuttingParams
+from ..model.vibration import VibrationParams
+from .config import ServeConfig
+from .models import Features, Parameters
+from .sources import BoneSource, SourceError, SourceRoots, resolve, snapshot_path
+
+log = logging.getLogger("burrforce.api")
+
+#: Jobs kept for status queries after they finish.
+JOBS_KEPT = 200
+
+
+class ApiError(Exception):
+    """An error the API answers with ``status`` and ``detail``."""
+
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+
+
+@dataclass
+class Job:
+    """A bone load (new session, new bone, reset, restore), queryable while it runs."""
+
+    id: str
+    kind: str
+    session_id: int
+    source: str
+    state: str = "queued"  # queued | running | done | failed
+    error: str | None = None
+    stage: str = ""
+    done: int = 0
+    total: int = 0
+    created_s: float = field(default_factory=time.time)
+    finished_s: float | None = None
+
+    def public(self) -> dict:
+        return {"id": self.id, "kind": self.kind, "session": self.session_id,
+                "source": self.source, "state": self.state, "error": self.error,
+                "progress": {"stage": self.stage, "done": self.done, "total": self.total},
+                "created": self.created_s, "finished": self.finished_s}
+
+
+@dataclass
+class ManagedSession:
+    """One session as configured over REST."""
+
+    id: int
+    key_hex: str | None
+    source: BoneSource
+    params: CuttingParams
+    shaft: ShaftParams
+    vibration: VibrationParams
+    config: SessionConfig
+    features: Features
+    primary_label: int | None = None
+    materials: MaterialTable | None = None
+    bone_info: dict | None = None
+    ref: SharedBoneRef | None = None
+    reader: SharedBone | None = None
+    state: str = "loading"  # loading | ready | failed
+    error: str | None = None
+    job_id: str | None = None
+    in_loop: bool = False
+    recording: dict | None = None
+    #: Material changes made over REST, per label (None: the primary material), applied again
+    #: to every bone this session loads (a reset keeps the user's Us and K).
+    overrides: dict = field(default_factory=dict)
+    created_s: float = field(default_factory=time.time)
+    #: Serializes changes to this session (loads, parameters, recordings).
+    lock: threading.RLock = field(default_factory=threading.RLock)
+
+    def effective_config(self) -> SessionConfig:
+        f = self.features
+        return replace(self.config, model=f.model, carve=f.carving,
+                       vibration=self.vibration if f.vibration else None)
+
+    def effective_shaft(self) -> ShaftParams:
+        return self.shaft if self.features.shaft else replace(self.shaft, length_mm=0.0)
+
+
+class ControlPlane:
+    """Sessions, loads and the hot loop behind the REST API. Thread-safe.
+
+    Args:
+        config: the server configuration.
+        hot: a started hot loop (the caller owns starting and stopping it).
+    """
+
+    def __init__(self, config: ServeConfig, hot: HotLoopProcess) -> None:
+        self.config = config
+        self.hot = hot
+        self.started_s = time.time()
+        self.data_dir = Path(config.data_dir).expanduser()
+        self.roots = SourceRoots(config.bone_library, self.data_dir / "uploads",
+                                 self.data_dir / "snapshots")
+        for d in (self.roots.uploads, self.roots.snapshots, self.data_dir / "recordings",
+                  self.data_dir / "exports"):
+            d.mkdir(parents=True, exist_ok=True)
+        self.recordings_dir = self.data_dir / "recordings"
+        self.run_dir = run_directory(0)
+        self.sessions: dict[int, ManagedSession] = {}
+        self.jobs: dict[str, Job] = {}
+        self._lock = threading.RLock()
+        self._loads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="burrforce-load")
+        self._file_counter = 0
+        self.latest_stats: dict | None = None
+
+    # -- sessions -----------------------------------------------------------------------------
+    def create_session(self, session_id: int | None, bone: BoneSource, params: Parameters,
+                       features: Features, authenticated: bool = True,
+                       key_hex: str | None = None) -> tuple[ManagedSession, Job]:
+        """Register a session and start loading its bone (``Job``). The session reaches the
+        hot loop when the load finishes."""
+        base = ManagedSession(0, None, bone, CuttingParams(), ShaftParams(), VibrationParams(),
+                              SessionConfig(), features)
+        self._apply_parameters(base, params, check_bone=False)
+        with self._lock:
+            if session_id is None:
+                session_id = next(i for i in range(1, 1 << 32) if i not in self.sessions)
+            elif session_id in self.sessions:
+                raise ApiError(409, f"session {session_id} exists")
+            if key_hex is None and authenticated:
+                key_hex = new_key().hex()
+            base.id = session_id
+            base.key_hex = key_hex if authenticated or key_hex else None
+            self.sessions[session_id] = base
+            job = self._submit(base, "create", bone)
+        return base, job
+
+    def get(self, session_id: int) -> ManagedSession:
+        with self._lock:
+            session = self.sessions.get(session_id)
+        if session is None:
+            raise ApiError(404, f"no session {session_id}")
+        return session
+
+    def ready(self, session_id: int) -> ManagedSession:
+        session = self.get(session_id)
+        if session.state != "ready":
+            raise ApiError(409, f"session {session_id} is {session.state}"
+                           + (f": {session.error}" if session.error else "")
+                           + (f" (job {session.job_id})" if session.state == "loading" else ""))
+        return session
+
+    def delete_session(self, session_id: int) -> None:
+        session = self.get(session_id)
+        with session.lock:
+            self._stop_recording(session)
+            with self._lock:
+                self.sessions.pop(session_id, None)
+            if session.in_loop:
+                self.hot.call("remove_session", session_id=session_id)
+                session.in_loop = False
+            self._drop_bone(session)
+
+    def load_bone(self, session_id: int, bone: BoneSource, kind: str = "load") -> Job:
+        """Replace a session's bone (a new source, a reset or a restore)."""
+        session = self.get(session_id)
+        with session.lock:
+            if session.state == "loading":
+                raise ApiError(409, f"session {session_id} is already loading a bone (job "
+                                    f"{session.job_id})")
+            return self._submit(session, kind, bone)
+
+    def reset(self, session_id: int) -> Job:
+        """The bone as its source gives it (uncarved), and a new stream."""
+        session = self.get(session_id)
+        return self.load_bone(session_id, session.source, "reset")
+
+    def restart_stream(self, session_id: int) -> None:
+        self.ready(session_id)
+        self.hot.call("restart_stream", session_id=session_id)
+
+    # -- loading ------------------------------------------------------------------------------
+    def _submit(self, session: ManagedSession, kind: str, bone: BoneSource) -> Job:
+        job = Job(secrets.token_hex(8), kind, session.id, bone.source)
+        with self._lock:
+            self.jobs[job.id] = job
+            while len(self.jobs) > JOBS_KEPT:
+                oldest = next(iter(self.jobs))
+                if self.jobs[oldest].state in ("queued", "running"):
+                    break
+                del self.jobs[oldest]
+        session.state, session.job_id, session.error = "loading", job.id, None
+        self._loads.submit(self._run_load, session, job, bone)
+        return job
+
+    def _run_load(self, session: ManagedSession, job: Job, source: BoneSource) -> None:
+        job.state = "running"
+
+        def progress(stage: str, done: int, total: int) -> None:
+            job.stage, job.done, job.total = stage, int(done), int(total)
+
+        try:
+            job.stage = "reading"
+            bone = source.load(progress)
+            job.stage = "checking"
+            self._check_bone(session, bone)
+            job.stage = "sharing"
+            with self._lock:
+                self._file_counter += 1
+                name = f"session-{session.id}-{self._file_counter}.bone"
+            ref = publish(bone, self.run_dir, name)
+            del bone
+            job.stage = "starting"
+            with session.lock:
+                if self.sessions.get(session.id) is not session:
+                    Path(ref.path).unlink(missing_ok=True)
+                    raise ApiError(410, "the session was deleted while its bone loaded")
+                self._stop_recording(session)
+                reader = SharedBone(ref)
+                materials = reader.materials()
+                primary = session.primary_label
+                if primary is None or primary not in materials:
+                    primary = default_primary(materials)
+                try:
+                    materials = with_overrides(materials, primary, session.overrides)
+                except ValueError as exc:
+                    reader.close()
+                    Path(ref.path).unlink(missing_ok=True)
+                    raise ApiError(422, str(exc)) from None
+                spec = self._spec(session, ref, materials)
+                try:
+                    info = self.hot.call("replace_session" if session.in_loop
+                                         else "add_session", spec=spec)
+                except RuntimeError:
+                    reader.close()
+                    Path(ref.path).unlink(missing_ok=True)
+                    raise
+                old = (session.reader, session.ref)
+                session.in_loop = True
+                session.ref, session.reader = ref, reader
+                session.materials, session.primary_label = materials, primary
+                session.source = source
+                session.bone_info = _bone_summary(reader, info)
+                session.state, session.error = "ready", None
+                self._close_bone(*old)
+            job.state = "done"
+        except ApiError as exc:
+            self._fail(session, job, exc.detail)
+        except (BoneFileError, SourceError, ValueError, OSError, RuntimeError) as exc:
+            self._fail(session, job, str(exc))
+        except MemoryError:
+            self._fail(session, job, "not enough memory to load the bone")
+        except Exception as exc:  # the worker must survive anything a loader throws
+            log.exception("loading %s failed", source.source)
+            self._fail(session, job, f"{type(exc).__name__}: {exc}")
+        finally:
+            job.finished_s = time.time()
+
+    def _fail(self, session: ManagedSession, job: Job, message: str) -> None:
+        job.state, job.error = "failed", message
+        # A session that already runs keeps its bone; a new one is marked failed.
+        if session.in_loop:
+            session.state, session.error = "ready", None
+        else:
+            session.state, session.error = "failed", message
+
+    def _check_bone(self, session: ManagedSession, bone: Bone) -> None:
+        try:
+            check_voxel_size(bone.grid.spacing_mm, session.params.radius_mm)
+        except ValueError as exc:
+            raise ApiError(422, str(exc)) from None
+
+    def _spec(self, session: ManagedSession, ref: SharedBoneRef,
+              materials: MaterialTable) -> SessionSpec:
+        key = bytes.fromhex(session.key_hex) if session.key_hex else None
+        return SessionSpec(session.id, ref, None, key, session.effective_config(),
+                           session.params, session.effective_shaft(),
+                           materials=materials, publish=session.features.deltas)
+
+    def _drop_bone(self, session: ManagedSession) -> None:
+        self._close_bone(session.reader, session.ref)
+        session.reader = session.ref = None
+
+    @staticmethod
+    def _close_bone(reader: SharedBone | None, ref: SharedBoneRef | None) -> None:
+        if reader is not None:
+            reader.close()
+        if ref is not None:
+            # The loop may still map it until its old engine is collected: unlinking only
+            # removes the name; the memory goes with the last mapping.
+            Path(ref.path).unlink(missing_ok=True)
+
+    # -- parameters ---------------------------------------------------------------------------
+    def update_parameters(self, session_id: int, params: Parameters) -> ManagedSession:
+        session = self.get(session_id)
+        with session.lock:
+            self._apply_parameters(session, params, check_bone=True)
+        return session
+
+    def _apply_parameters(self, session: ManagedSession, p: Parameters,
+                          check_bone: bool) -> None:
+        """Validate everything first, then change the session, then the loop (all or
+        nothing: a bad field leaves the session as it was)."""
+        try:
+            params = session.params.with_(**{k: v for k, v in (
+                ("radius_mm", p.radius_mm), ("spin", p.spin),
+                ("min_cutting_rpm", p.min_cutting_rpm)) if v is not None})
+            shaft = replace(session.shaft, **{k: v for k, v in (
+                ("radius_mm", p.shaft_radius_mm), ("length_mm", p.shaft_length_mm),
+                ("stiffness_n_mm3", p.shaft_stiffness_n_mm3)) if v is not None})
+            vibration = replace(session.vibration, **{k: v for k, v in (
+                ("fd_N", p.fd_N), ("g", p.g), ("harmonic", p.harmonic)) if v is not None})
+            config = replace(session.config, **{k: v for k, v in (
+                ("frame", p.frame), ("tool_axis", p.tool_axis),
+                ("placement_position", p.placement_position),
+                ("placement_orientation", p.placement_orientation)) if v is not None})
+        except (TypeError, ValueError) as exc:
+            raise ApiError(422, str(exc)) from None
+        if shaft.length_mm > 0 and shaft.radius_mm >= params.radius_mm:
+            raise ApiError(422, f"the shaft radius {shaft.radius_mm} mm must be smaller than "
+                                f"the burr radius {params.radius_mm} mm")
+        if check_bone and session.ref is not None:
+            try:
+                check_voxel_size(np.array(session.ref.spacing_mm), params.radius_mm)
+            except ValueError as exc:
+                raise ApiError(422, str(exc)) from None
+        materials = session.materials
+        primary = session.primary_label
+        if p.primary_material is not None:
+            if materials is not None and p.primary_material not in materials:
+                raise ApiError(422, f"the bone has no material with label "
+                                    f"{p.primary_material}")
+            primary = p.primary_material
+        overrides = dict(session.overrides)
+        us_k = {k: v for k, v in (("us_n_mm2", p.us_n_mm2), ("k", p.k)) if v is not None}
+        if us_k:
+            target = primary if materials is not None else None  # None: the primary, on load
+            if materials is not None and primary is None:
+                raise ApiError(422, "the bone has no cuttable material to set Us/K on")
+            overrides[target] = {**overrides.get(target, {}), **us_k}
+            if materials is not None:
+                try:
+                    materials = with_overrides(materials, primary, {target: us_k})
+                except ValueError as exc:
+                    raise ApiError(422, str(exc)) from None
+        old = (session.params, session.shaft, session.vibration, session.config,
+               session.materials, session.primary_label, session.overrides)
+        session.params, session.shaft, session.vibration, session.config = (
+            params, shaft, vibration, config)
+        session.materials, session.primary_label = materials, primary
+        session.overrides = overrides
+        try:
+            self._push(session, engine=True, config=True,
+                       materials=materials is not old[4])
+        except Exception:
+            (session.params, session.shaft, session.vibration, session.config,
+             session.materials, session.primary_label, session.overrides) = old
+            raise
+
+    def update_features(self, session_id: int, features: Features) -> ManagedSession:
+        session = self.get(session_id)
+        with session.lock:
+            old = session.features
+            session.features = features
+            try:
+                self._push(session, engine=True, config=True, publish=True)
+            except Exception:
+                session.features = old
+                raise
+        return session
+
+    def set_material(self, session_id: int, label: int, material: Material | None,
+                     changes: dict | None = None) -> ManagedSession:
+        session = self.ready(session_id)
+        with session.lock:
+            assert session.materials is not None
+            table = session.materials.copy()
+            try:
+                if material is not None:
+                    table.set(label, material)
+                elif label not in table:
+                    raise ApiError(404, f"no material with label {label}")
+                else:
+                    table.update(label, **(changes or {}))
+            except (KeyError, ValueError) as exc:
+                raise ApiError(422, str(exc).strip("'\"")) from None
+            old = session.materials, session.overrides
+            m = table[label]
+            session.materials = table
+            session.overrides = {**session.overrides, label: {
+                "name": m.name, "us_n_mm2": m.us_n_mm2, "k": m.k, "forbidden": m.forbidden}}
+            try:
+                self._push(session, materials=True)
+            except Exception:
+                session.materials, session.overrides = old
+                raise
+        return session
+
+    def _push(self, session: ManagedSession, engine: bool = False, config: bool = False,
+              materials: bool = False, publish: bool = False) -> None:
+        """Send the session's effective settings to the loop (if it is running there)."""
+        if not session.in_loop:
+            return
+        kwargs: dict = {}
+        if engine:
+            kwargs.update(params=session.params, shaft=session.effective_shaft())
+        if materials:
+            kwargs["materials"] = session.materials.copy()
+        if publish:
+            kwargs["publish"] = session.features.deltas
+        try:
+            if kwargs:
+                self.hot.call("set_engine", session_id=session.id, **kwargs)
+            if config:
+                self.hot.call("configure", session_id=session.id,
+                              config=session.effective_config())
+        except RuntimeError as exc:
+            raise ApiError(422 if "ValueError" in str(exc) else 503, str(exc)) from None
+
+    # -- reading the bone ---------------------------------------------------------------------
+    def snapshot_bone(self, session_id: int) -> Bone:
+        """A consistent private copy of the session's bone as it is now."""
+        session = self.ready(session_id)
+        if not session.features.deltas:
+            raise ApiError(409, "the session has deltas off: the loop does not publish the "
+                                "bone while it is cut; turn the feature on first")
+        reader = session.reader
+        assert reader is not None
+        try:
+            bone = reader.snapshot()
+        except TimeoutError as exc:
+            raise ApiError(503, str(exc)) from None
+        bone.materials = session.materials.copy() if session.materials else bone.materials
+        return bone
+
+    def save_snapshot(self, session_id: int, name: str | None) -> dict:
+        bone = self.snapshot_bone(session_id)
+        if name is None:
+            name = f"session-{session_id}-v{bone.grid.version}-{time.strftime('%Y%m%d-%H%M%S')}"
+        path = snapshot_path(self.roots.snapshots, name)
+        if path.exists():
+            raise ApiError(409, f"snapshot {name!r} exists")
+        save_bone(bone, path)
+        return snapshot_entry(path)
+
+    def list_snapshots(self) -> list[dict]:
+        return [snapshot_entry(p) for p in sorted(self.roots.snapshots.glob("*.bone.npz"))]
+
+    # -- recording ----------------------------------------------------------------------------
+    def start_recording(self, session_id: int, name: str | None, max_bytes: int) -> dict:
+        session = self.ready(session_id)
+        with session.lock:
+            if session.recording is not None:
+                raise ApiError(409, f"session {session_id} is already recording "
+                                    f"({session.recording['name']})")
+            bone = self.snapshot_bone(session_id)
+            name = name or f"session-{session_id}-{time.strftime('%Y%m%d-%H%M%S')}"
+            path = self.recordings_dir / (name if name.endswith(".burrrec")
+                                          else name + ".burrrec")
+            if path.exists():
+                raise ApiError(409, f"recording {path.name} exists")
+            path.mkdir(parents=True)
+            try:
+                from ..record.format import SNAPSHOT_NAME
+                save_bone(bone, path / SNAPSHOT_NAME)
+                result = self.hot.call("start_recording", session_id=session_id,
+                                       path=str(path), snapshot_version=bone.grid.version,
+                                       bone_name=session.source.source, max_bytes=max_bytes)
+            except Exception:
+                shutil.rmtree(path, ignore_errors=True)
+                raise
+            session.recording = {"name": path.name, "path": str(path), **result}
+            return session.recording
+
+    def recording_status(self, session_id: int) -> dict | None:
+        session = self.get(session_id)
+        if session.recording is None:
+            return None
+        status = self.hot.call("recording_status", session_id=session_id)
+        return {**session.recording, **(status or {})}
+
+    def stop_recording(self, session_id: int) -> dict:
+        session = self.get(session_id)
+        with session.lock:
+            if session.recording is None:
+                raise ApiError(409, f"session {session_id} is not recording")
+            return self._stop_recording(session) or {}
+
+    def _stop_recording(self, session: ManagedSession) -> dict | None:
+        if session.recording is None:
+            return None
+        info = session.recording
+        session.recording = None
+        try:
+            status = self.hot.call("stop_recording", session_id=session.id)
+        except RuntimeError as exc:
+            status = {"error": str(exc)}
+        return {**info, **(status or {})}
+
+    def list_recordings(self) -> list[dict]:
+        out = []
+        for path in sorted(self.recordings_dir.glob("*.burrrec")):
+            size = sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+            out.append({"name": path.name, "bytes": size,
+                        "complete": (path / "summary.json").exists(),
+                        "replay": f"burrforce replay {path}"})
+        return out
+
+    # -- statistics ---------------------------------------------------------------------------
+    def session_state(self, session_id: int, max_events: int = 100) -> dict:
+        self.ready(session_id)
+        try:
+            state = self.hot.call("session_state", session_id=session_id,
+                                  max_events=max_events)
+        except RuntimeError as exc:
+            raise ApiError(503, str(exc)) from None
+        return state  # type: ignore[return-value]
+
+    # -- lifetime -----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop recordings, forget sessions, remove the shared bones (the caller stops the
+        loop)."""
+        self._loads.shutdown(wait=False, cancel_futures=True)
+        for session in list(self.sessions.values()):
+            try:
+                with session.lock:
+                    self._stop_recording(session)
+            except Exception:
+                pass
+            self._drop_bone(session)
+        self.sessions.clear()
+        shutil.rmtree(self.run_dir, ignore_errors=True)
+
+    def resolve(self, source: str, kind: str | None = None, voxel_mm: float | None = None,
+                spacing_mm: tuple[float, float, float] | None = None) -> BoneSource:
+        try:
+            return resolve(source, self.roots, kind, voxel_mm, spacing_mm)
+        except SourceError as exc:
+            raise ApiError(exc.status, str(exc)) from None
+
+
+def default_primary(materials: MaterialTable) -> int | None:
+    """Label 1 if the bone has it (the thesis's cortical bone in every built-in table), else
+    its first material that is not forbidden."""
+    labels = [label for label, m in materials if not m.forbidden]
+    if 1 in labels:
+        return 1
+    return labels[0] if labels else None
+
+
+def with_overrides(materials: MaterialTable, primary: int | None,
+                   overrides: dict) -> MaterialTable:
+    """A copy of ``materials`` with the REST changes applied (key None: the primary
+    material). Labels the bone does not have get the full material if one was given."""
+    table = materials.copy()
+    for label, changes in overrides.items():
+        label = primary if label is None else label
+        if label is None:
+            continue
+        if label in table:
+            table.update(label, **changes)
+        elif {"name", "us_n_mm2", "k"} <= set(changes):
+            table.set(label, Material(**changes))
+    return table
+
+
+def snapshot_entry(path: Path) -> dict:
+    name = path.name[: -len(".bone.npz")]
+    return {"name": name, "source": f"snapshot:{name}", "bytes": path.stat().st_size,
+            "created": path.stat().st_mtime}
+
+
+def _bone_summary(reader: SharedBone, info: dict) -> dict:
+    ref = reader.ref
+    lo = np.array(ref.origin_mm)
+    return {"name": ref.name, "format": ref.format, "kind": ref.kind,
+            "shape": list(ref.shape), "spacing_mm": list(ref.spacing_mm),
+            "origin_mm": lo.tolist(), "direction": [list(r) for r in ref.direction],
+            "voxel_mm": info.get("voxel_mm"), "notes": list(ref.notes),
+            "memory_bytes": ref.size_bytes}
+
+
+def start_hot_loop(config: ServeConfig) -> HotLoopProcess:
+    """The hot loop with no sessions yet (the control plane adds them)."""
+    hot = HotLoopProcess(HotLoopConfig(config.host, config.udp_port, ()))
+    hot.start()
+    return hot

@@ -1,0 +1,155 @@
+"""Prometheus metrics from the hot loop's statistics.
+
+A poller thread asks the loop for its counters twice a second (the loop copies them between two
+packets; quantiles and histograms are computed here) and keeps cumulative histograms of the
+model-stage time from the ticks that happened since the last poll.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
+
+#: Histogram buckets of the model-stage time, µs (the upper bounds; +Inf is added).
+TICK_BUCKETS_US = (25.0, 50.0, 100.0, 150.0, 200.0, 300.0, 500.0, 750.0, 1000.0, 2000.0,
+                   5000.0)
+POLL_INTERVAL_S = 0.5
+
+
+class TickHistogram:
+    """Cumulative bucket counts and sum of tick times (µs) for one session."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(len(TICK_BUCKETS_US) + 1, dtype=np.int64)
+        self.sum_us = 0.0
+
+    def add(self, times_us: np.ndarray) -> None:
+        if len(times_us):
+            index = np.searchsorted(TICK_BUCKETS_US, times_us, side="left")
+            self.counts += np.bincount(index, minlength=len(self.counts))
+            self.sum_us += float(np.sum(times_us))
+
+
+class LoopStats:
+    """The latest statistics of the hot loop and the tick histograms (thread-safe).
+
+    Args:
+        fetch: ``hot.call("stats", tick_times_since=...)``-like callable.
+    """
+
+    def __init__(self, fetch: Callable[[dict[int, int]], dict]) -> None:
+        self._fetch = fetch
+        self._lock = threading.Lock()
+        self.latest: dict | None = None
+        self.histograms: dict[int, TickHistogram] = {}
+        self._seen: dict[int, int] = {}
+        self.ticks_lost = 0
+        self.poll_errors = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def poll(self) -> dict:
+        with self._lock:
+            since = dict(self._seen)
+        stats = self._fetch(since)
+        with self._lock:
+            live = set(stats["sessions"])
+            for sid in list(self.histograms):
+                if sid not in live:
+                    del self.histograms[sid]
+                    self._seen.pop(sid, None)
+            for sid, s in stats["sessions"].items():
+                timed = int(s["ticks_timed"])
+                if timed < self._seen.get(sid, 0):  # a new session under the same id
+                    self.histograms.pop(sid, None)
+                    self._seen[sid] = 0
+                new = s.pop("new_tick_times_us", None)
+                hist = self.histograms.setdefault(sid, TickHistogram())
+                if new is not None:
+                    hist.add(np.asarray(new))
+                    self.ticks_lost += max(0, timed - self._seen.get(sid, 0) - len(new))
+                self._seen[sid] = timed
+            self.latest = stats
+        return stats
+
+    def start(self) -> None:
+        def run() -> None:
+            while not self._stop.wait(POLL_INTERVAL_S):
+                try:
+                    self.poll()
+                except Exception:
+                    self.poll_errors += 1
+        self._thread = threading.Thread(target=run, name="burrforce-stats", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+
+    def collect(self):  # the prometheus_client collector protocol
+        with self._lock:
+            stats = self.latest
+            histograms = {sid: (h.counts.copy(), h.sum_us)
+                          for sid, h in self.histograms.items()}
+        if stats is None:
+            return
+        packets = CounterMetricFamily(
+            "burrforce_packets", "Datagrams by outcome (received, replied, noticed, and one "
+            "reason per datagram not processed normally)", labels=["outcome"])
+        for name, value in stats["counters"].items():
+            packets.add_metric([name], value)
+        yield packets
+        hist = HistogramMetricFamily(
+            "burrforce_tick_seconds", "Time of the bone stage (carve + force + shaft) per "
+            "tick", labels=["session"])
+        for sid, (counts, total) in sorted(histograms.items()):
+            cumulative = np.cumsum(counts)
+            buckets = [(f"{b * 1e-6:g}", int(c)) for b, c in zip(TICK_BUCKETS_US,
+                                                                  cumulative, strict=False)]
+            buckets.append(("+Inf", int(cumulative[-1])))
+            hist.add_metric([str(sid)], buckets, total * 1e-6)
+        yield hist
+        sessions = stats["sessions"]
+        accepted = CounterMetricFamily("burrforce_session_packets",
+                                       "Per-session datagram outcomes",
+                                       labels=["session", "outcome"])
+        version = GaugeMetricFamily("burrforce_bone_version", "Bone version (ticks that "
+                                    "removed bone)", labels=["session"])
+        removed = GaugeMetricFamily("burrforce_removed_mm3", "Bone removed since the bone was "
+                                    "loaded, mm³", labels=["session", "material"])
+        force = GaugeMetricFamily("burrforce_last_force_newtons", "|F| of the last reply, N",
+                                  labels=["session"])
+        events = CounterMetricFamily("burrforce_forbidden_contacts", "Forbidden-structure "
+                                     "contacts begun", labels=["session"])
+        for sid, s in sorted(sessions.items()):
+            label = str(sid)
+            for name in ("accepted", "stale", "duplicate", "bad_value", "internal",
+                         "restarts", "velocity_resets", "teleports"):
+                accepted.add_metric([label, name], s.get(name, 0))
+            version.add_metric([label], s["bone_version"])
+            for material, mm3 in s["removed_mm3"].items():
+                removed.add_metric([label, material], mm3)
+            force.add_metric([label], s["last_force_N"])
+            events.add_metric([label], s["forbidden_events"])
+        yield from (accepted, version, removed, force, events)
+        up = GaugeMetricFamily("burrforce_sessions", "Sessions in the hot loop")
+        up.add_metric([], len(sessions))
+        yield up
+
+
+def registry(stats: LoopStats) -> CollectorRegistry:
+    reg = CollectorRegistry(auto_describe=True)
+    reg.register(stats)
+    return reg
+
+
+def wait_for_first(stats: LoopStats, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while stats.latest is None and time.monotonic() < deadline:
+        time.sleep(0.02)

@@ -1,0 +1,147 @@
+"""The REST API's request and response bodies (pydantic: validated, documented in OpenAPI).
+
+Units are in the field names: mm, N, rpm, N/mm² (= N·mm per mm³ removed), s.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from ...proto.frames import FRAMES
+
+FrameName = Literal[tuple(FRAMES)]  # type: ignore[valid-type]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(description="x, y, z")]
+Quat = Annotated[tuple[Finite, Finite, Finite, Finite], Field(description="x, y, z, w")]
+SessionId = Annotated[int, Field(ge=0, le=(1 << 32) - 1)]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class BoneRequest(Strict):
+    """Which bone to load."""
+
+    source: str = Field("phantom:temporal", max_length=1024, examples=[
+        "phantom:temporal", "library:patients/0042/ct.nrrd", "upload:9f86d081884c7d65",
+        "snapshot:before-mastoid"],
+        description="phantom:NAME, library:PATH (in the configured bone library), upload:ID "
+                    "(from POST /v1/uploads) or snapshot:NAME")
+    kind: Literal["ct", "labels", "density"] | None = Field(
+        None, description="what the voxels are; required for npy, npz, NRRD, NIfTI and PNG "
+                          "(their voxels could mean any of the three)")
+    voxel_mm: float | None = Field(None, gt=0.001, le=10.0,
+                                   description="a phantom's voxel size, mm")
+    spacing_mm: Vec3 | None = Field(None, description="voxel size for npy and PNG files, mm")
+
+
+class Features(Strict):
+    """What a session's scene uses. Off is skipped in the hot loop, not computed and
+    discarded."""
+
+    model: bool = Field(True, description="the bone stage (carving and force); off answers "
+                                          "with zero force (protocol only)")
+    carving: bool = Field(True, description="remove bone (off: forces from the bone as is)")
+    vibration: bool = Field(True, description="vibration amplitude and frequency")
+    shaft: bool = Field(True, description="contact of the burr's shaft with bone")
+    deltas: bool = Field(True, description="publish the bone to the control plane while it is "
+                                           "cut (exports, deltas and snapshots of a session "
+                                           "being cut); two integer writes per carving tick")
+    coupling: bool = Field(False, description="the coupled (device-stable) output; not in "
+                                              "this version: only false is accepted")
+
+    @field_validator("coupling")
+    @classmethod
+    def _no_coupling_yet(cls, v: bool) -> bool:
+        if v:
+            raise ValueError("the coupled output mode (proxy and virtual coupling) is not "
+                             "available in this version; the reply carries the raw force")
+        return v
+
+
+class Parameters(Strict):
+    """A session's model, burr and engine parameters (PATCH: any subset)."""
+
+    us_n_mm2: Finite | None = Field(None, ge=0.0, le=1e7, description=(
+        "specific cutting energy Us of the session's primary material, N/mm²"))
+    k: Finite | None = Field(None, ge=0.0, le=100.0, description=(
+        "normal/tangential force ratio K of the primary material"))
+    primary_material: int | None = Field(None, ge=1, le=255, description=(
+        "the material label us_n_mm2 and k apply to (default: label 1 if the bone has it, "
+        "else its first non-forbidden material)"))
+    fd_N: Finite | None = Field(None, ge=0.0, le=1e3, description="vibration amplitude "
+                                                                  "spinning free, N")
+    g: Finite | None = Field(None, ge=0.0, le=1e3, description="vibration gain on |F_r|")
+    harmonic: Finite | None = Field(None, gt=0.0, le=1e3, description=(
+        "vibration frequency multiple of the rotation rate (1: grinding burr; flutes)"))
+    radius_mm: Finite | None = Field(None, gt=0.001, le=100.0, description="burr radius R, mm")
+    spin: Literal["forward", "reverse"] | None = None
+    min_cutting_rpm: Finite | None = Field(None, ge=1.0, le=1e7, description=(
+        "below this spindle speed the burr does not cut, rpm"))
+    shaft_radius_mm: Finite | None = Field(None, ge=0.0, le=50.0)
+    shaft_length_mm: Finite | None = Field(None, ge=0.0, le=500.0)
+    shaft_stiffness_n_mm3: Finite | None = Field(None, ge=0.0, le=1e6)
+    frame: FrameName | None = Field(None, description="the engine's frame and units")
+    tool_axis: Vec3 | None = Field(None, description=(
+        "tool axis (burr → handle) in the tool's local frame, engine axes"))
+    placement_position: Vec3 | None = Field(None, description=(
+        "where the bone's world origin is in the engine's world, engine units"))
+    placement_orientation: Quat | None = None
+
+    @field_validator("tool_axis")
+    @classmethod
+    def _nonzero(cls, v):
+        if v is not None and math.hypot(*v) < 1e-6:
+            raise ValueError("tool_axis must not be zero")
+        return v
+
+    @field_validator("placement_orientation")
+    @classmethod
+    def _unit(cls, v):
+        if v is not None and math.sqrt(sum(x * x for x in v)) < 1e-6:
+            raise ValueError("placement_orientation must not be a zero quaternion")
+        return v
+
+
+class SessionCreate(Strict):
+    """A new session."""
+
+    id: SessionId | None = Field(None, description="default: the lowest free id from 1")
+    bone: BoneRequest = Field(default_factory=BoneRequest)
+    authenticated: bool = Field(True, description=(
+        "give the session a key (datagrams are tagged); false only for loopback development"))
+    parameters: Parameters = Field(default_factory=Parameters)
+    features: Features = Field(default_factory=Features)
+
+
+class MaterialBody(Strict):
+    name: str = Field(min_length=1, max_length=64)
+    us_n_mm2: Finite = Field(ge=0.0, le=1e7)
+    k: Finite = Field(ge=0.0, le=100.0)
+    forbidden: bool = False
+
+
+class MaterialPatch(Strict):
+    name: str | None = Field(None, min_length=1, max_length=64)
+    us_n_mm2: Finite | None = Field(None, ge=0.0, le=1e7)
+    k: Finite | None = Field(None, ge=0.0, le=100.0)
+    forbidden: bool | None = None
+
+
+class RecordingStart(Strict):
+    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$",
+                             description="default: session-ID-TIME")
+    max_mb: float = Field(2048.0, gt=0.0, le=1 << 20, description="stop at this size, MB")
+
+
+class SnapshotRequest(Strict):
+    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,70}$",
+                             description="default: session-ID-vVERSION-TIME")
+
+
+class RestoreRequest(Strict):
+    snapshot: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
