@@ -112,12 +112,8 @@ def resolve_token(config: ServeConfig) -> tuple[str, bool]:
 
 
 def main(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from .api.app import create_app
-    from .api.manager import ControlPlane, start_hot_loop
-    from .api.metrics import LoopStats
-    from .api.models import Features, Parameters
+    from .api.models import Parameters
+    from .api.stack import ServerStack
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
@@ -133,36 +129,25 @@ def main(args: argparse.Namespace) -> int:
         key_hex = parse_key(config.key).hex() if config.key else None
     token, new_token = resolve_token(config)
     bone = config.bone
-    if not bone.startswith(("phantom:", "library:", "upload:", "snapshot:")):
-        bone = str(Path(bone).expanduser().resolve())
     say = functools.partial(print, flush=True)
-    say(f"loading {config.bone} and warming up the kernels (the first start compiles them: "
+    say(f"loading {bone} and warming up the kernels (the first start compiles them: "
         "up to a minute)...")
     t0 = time.monotonic()
-    hot = start_hot_loop(config)
-    plane = stats = None
+    stack = ServerStack(config, token)
     conn_path = conn = None
     try:
-        plane = ControlPlane(config, hot)
+        stack.start_backend()
+        plane = stack.plane
         if bone.startswith("phantom:"):
             source = plane.resolve(bone, None, config.voxel_mm)
         elif bone.startswith(("library:", "upload:", "snapshot:")):
             source = plane.resolve(bone, args.kind)
         else:
-            source = _file_source(bone, args.kind)
-        session, job = plane.create_session(
-            config.session_id, source, Parameters(frame=config.frame), Features(),
-            authenticated=not config.no_auth, key_hex=key_hex)
-        while plane.jobs[job.id].state in ("queued", "running"):
-            time.sleep(0.02)
-        if session.state != "ready":
-            raise ValueError(f"cannot load {config.bone}: {session.error}")
-        stats = LoopStats(lambda since: hot.call("stats", tick_times_since=since))
-        stats.poll()
-        stats.start()
-        app = create_app(plane, token, stats)
-        server = uvicorn.Server(uvicorn.Config(app, host=config.host, port=config.http_port,
-                                               log_level="warning", access_log=False))
+            source = _file_source(str(Path(bone).expanduser().resolve()), args.kind)
+        session = stack.add_session(source, Parameters(frame=config.frame),
+                                    session_id=config.session_id, key_hex=key_hex,
+                                    authenticated=not config.no_auth)
+        server = stack.server
         done = threading.Event()
         context = {}
 
@@ -171,19 +156,18 @@ def main(args: argparse.Namespace) -> int:
                 pass
             if not server.started:
                 return
-            port = server.servers[0].sockets[0].getsockname()[1]
-            url = f"http://{_url_host(config.host)}:{port}"
-            udp_host, udp_port = hot.address
+            udp_host, udp_port = stack.udp_address
             c = connection.Connection(udp_host, udp_port, session.id, session.key_hex,
                                       session.config.frame,
-                                      (session.bone_info or {}).get("voxel_mm"), url, token)
+                                      (session.bone_info or {}).get("voxel_mm"), stack.url,
+                                      token)
             context["conn"] = c
             context["path"] = connection.write(c, args.connection_file)
-            _banner(say, time.monotonic() - t0, url, c, token, new_token, config,
+            _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"])
             if args.demo:
                 _run_demo(say, context["path"], done)
-            _report(stats, session.id, done, say)
+            _report(stack.stats, session.id, done, say)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
         server.run()  # until SIGINT/SIGTERM (uvicorn handles both)
@@ -194,11 +178,7 @@ def main(args: argparse.Namespace) -> int:
         conn, conn_path = context.get("conn"), context.get("path")
     finally:
         say("stopping: sessions removed, hot loop stopped...")
-        if stats is not None:
-            stats.stop()
-        if plane is not None:
-            plane.close()
-        hot.stop()
+        stack.stop()
         if conn_path is not None:
             connection.remove(conn_path, only_if=conn)
     say("stopped")
@@ -216,12 +196,6 @@ def _file_source(path: str, kind: str | None):
         raise ValueError(f"{path} is a {fmt} file whose voxels could be CT numbers, labels "
                          "or densities: say which with --kind ct|labels|density")
     return BoneSource(f"file:{path}", Path(path), kind)
-
-
-def _url_host(host: str) -> str:
-    if host in ("0.0.0.0", "::"):
-        return "127.0.0.1"
-    return f"[{host}]" if ":" in host else host
 
 
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,

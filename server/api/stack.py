@@ -1,0 +1,131 @@
+"""The whole server in one object: hot loop, control plane, statistics, uvicorn.
+
+``burrforce serve`` runs it in the foreground; tests and Python harnesses embed it::
+
+    with ServerStack(ServeConfig(http_port=0, udp_port=0, data_dir=tmp), token) as stack:
+        stack.url, stack.udp_address, stack.plane ...
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import uvicorn
+
+from .app import create_app
+from .config import ServeConfig
+from .manager import ControlPlane, ManagedSession, start_hot_loop
+from .metrics import LoopStats
+from .models import Features, Parameters
+from .sources import BoneSource
+
+START_TIMEOUT_S = 600.0
+
+
+class ServerStack:
+    """Hot loop + control plane + REST app (+ an optional default session).
+
+    Args:
+        config: server configuration (``http_port=0``/``udp_port=0`` pick free ports).
+        token: the REST bearer token.
+    """
+
+    def __init__(self, config: ServeConfig, token: str) -> None:
+        self.config = config
+        self.token = token
+        self.hot = None
+        self.plane: ControlPlane | None = None
+        self.stats: LoopStats | None = None
+        self.server: uvicorn.Server | None = None
+        self._thread: threading.Thread | None = None
+
+    def start_backend(self) -> None:
+        """The hot loop, the control plane and the statistics poller (no HTTP yet)."""
+        self.hot = start_hot_loop(self.config)
+        try:
+            self.plane = ControlPlane(self.config, self.hot)
+            hot = self.hot
+            self.stats = LoopStats(lambda since: hot.call("stats", tick_times_since=since))
+            self.stats.poll()
+            self.stats.start()
+            app = create_app(self.plane, self.token, self.stats)
+            self.server = uvicorn.Server(uvicorn.Config(
+                app, host=self.config.host, port=self.config.http_port, log_level="warning",
+                access_log=False))
+        except BaseException:
+            self.stop()
+            raise
+
+    def add_session(self, source: BoneSource, parameters: Parameters | None = None,
+                    features: Features | None = None, session_id: int | None = None,
+                    key_hex: str | None = None, authenticated: bool = True
+                    ) -> ManagedSession:
+        """Create a session and wait for its bone. Raises ValueError if it fails to load."""
+        assert self.plane is not None
+        session, job = self.plane.create_session(
+            session_id, source, parameters or Parameters(), features or Features(),
+            authenticated=authenticated, key_hex=key_hex)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while self.plane.jobs[job.id].state in ("queued", "running"):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"loading {source.source} took too long")
+            time.sleep(0.02)
+        if session.state != "ready":
+            raise ValueError(f"cannot load {source.source}: {session.error}")
+        return session
+
+    def serve_in_thread(self, timeout_s: float = 30.0) -> None:
+        """Serve HTTP from a background thread (tests, harnesses); returns once bound."""
+        assert self.server is not None
+        self.server.install_signal_handlers = lambda: None  # type: ignore[method-assign]
+        self._thread = threading.Thread(target=self.server.run, name="burrforce-http",
+                                        daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self.server.started:
+            if not self._thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("the REST server did not start (is the port free?)")
+            time.sleep(0.01)
+
+    @property
+    def http_port(self) -> int:
+        assert self.server is not None and self.server.started
+        return self.server.servers[0].sockets[0].getsockname()[1]
+
+    @property
+    def url(self) -> str:
+        host = self.config.host
+        if host in ("0.0.0.0", "::"):
+            host = "127.0.0.1"
+        elif ":" in host:
+            host = f"[{host}]"
+        return f"http://{host}:{self.http_port}"
+
+    @property
+    def udp_address(self) -> tuple[str, int]:
+        assert self.hot is not None and self.hot.address is not None
+        return self.hot.address
+
+    def stop(self) -> None:
+        """Stop HTTP, recordings, sessions and the hot loop; remove the shared bones."""
+        if self.server is not None:
+            self.server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(10.0)
+            self._thread = None
+        if self.stats is not None:
+            self.stats.stop()
+        if self.plane is not None:
+            self.plane.close()
+        if self.hot is not None:
+            self.hot.stop()
+
+    def __enter__(self) -> ServerStack:
+        if self.hot is None:
+            self.start_backend()
+            self.serve_in_thread()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

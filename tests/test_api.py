@@ -1,0 +1,372 @@
+"""The REST control plane against the real stack: a hot-loop process, uvicorn on 127.0.0.1,
+httpx, real UDP clients cutting, real files. Every wait is bounded."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from burrforce.client import BurrClient
+from burrforce.proto.messages import FLAG_NEW_STREAM, STATUS_CUTTING, UNKNOWN_SESSION
+from burrforce.server.api.config import ServeConfig
+from burrforce.server.api.stack import ServerStack
+from burrforce.server.bone import LoadOptions, load_bone, phantom, save_bone
+from burrforce.server.bone.deltas import decode_delta
+from burrforce.server.record import replay
+
+TOKEN = "test-token-0123456789abcdef"
+VOXEL_MM = 0.25
+FEED = (3.0, 0.0, 0.0)  # mm/s, sent with each pose so forces do not depend on timing
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    data = tmp_path_factory.mktemp("data")
+    library = tmp_path_factory.mktemp("library")
+    save_bone(phantom("workpiece", VOXEL_MM), library / "block.bone.npz")
+    np.save(library / "raw.npy", np.full((40, 40, 20), 255, dtype=np.uint8))
+    (library / "notes.txt").write_text("not a bone")
+    config = ServeConfig(http_port=0, udp_port=0, data_dir=data, bone_library=library,
+                         upload_max_mb=1.0)
+    with ServerStack(config, TOKEN) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def api(stack):
+    with httpx.Client(base_url=stack.url + "/v1", timeout=120.0,
+                      headers={"Authorization": f"Bearer {TOKEN}"}) as client:
+        yield client
+
+
+def _session(api, **body) -> dict:
+    body.setdefault("bone", {"source": "phantom:workpiece", "voxel_mm": VOXEL_MM})
+    r = api.post("/sessions", json=body)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _groove(stack, s: dict, y_mm: float, ticks: int = 150, rpm: float = 60_000,
+            z_mm: float = 1.5) -> list:
+    """Feed along +x at y, 0.5 mm deep in the workpiece; the replies."""
+    with BurrClient(*stack.udp_address, session=s["id"], key=s.get("key"),
+                    timeout_s=2.0) as c:
+        out = [c.exchange((2.0, y_mm, z_mm), rpm=rpm, velocity=FEED, flags=FLAG_NEW_STREAM)]
+        out += [c.exchange((2.0 + 0.003 * k, y_mm, z_mm), rpm=rpm, velocity=FEED)
+                for k in range(1, ticks)]
+    return [r.reply for r in out]
+
+
+def _steady(replies) -> np.ndarray:
+    forces = np.array([r.force for r in replies[-50:]])
+    assert all(r.status & STATUS_CUTTING for r in replies[-50:])
+    return forces.mean(axis=0)
+
+
+# -- security ---------------------------------------------------------------------------------
+def test_every_route_but_health_needs_the_token(stack):
+    with httpx.Client(base_url=stack.url, timeout=30.0) as anon:
+        assert anon.get("/v1/health").status_code == 200
+        for path in ("/v1/sessions", "/v1/phantoms", "/metrics", "/v1/snapshots"):
+            r = anon.get(path)
+            assert r.status_code == 401 and "token" in r.json()["detail"]
+            assert r.headers["www-authenticate"] == "Bearer"
+        r = anon.get("/v1/sessions", headers={"Authorization": "Bearer wrong-token-xxxxxxxx"})
+        assert r.status_code == 401
+        # CORS is off: no allow-origin header for a browser's preflight.
+        r = anon.options("/v1/sessions", headers={"Origin": "http://evil.example",
+                                                  "Access-Control-Request-Method": "GET"})
+        assert "access-control-allow-origin" not in r.headers
+
+
+# -- sessions -----------------------------------------------------------------------------------
+def test_create_list_get_delete(stack, api):
+    s = _session(api, id=40)
+    assert s["state"] == "ready" and len(s["key"]) == 64
+    assert s["udp"]["port"] == stack.udp_address[1]
+    assert s["bone"]["shape"] and s["bone"]["voxel_mm"] == VOXEL_MM
+    assert api.post("/sessions", json={"id": 40}).status_code == 409
+    assert any(x["id"] == 40 for x in api.get("/sessions").json())
+    got = api.get("/sessions/40").json()
+    assert "key" not in got and got["source"] == "phantom:workpiece"
+    assert _groove(stack, s, 0.0, 30)[-1].status & STATUS_CUTTING
+    assert api.delete("/sessions/40").status_code == 204
+    assert api.get("/sessions/40").status_code == 404
+    # The session is gone from the hot loop too: its datagrams get UNKNOWN_SESSION.
+    with BurrClient(*stack.udp_address, session=40, key=s["key"], timeout_s=1.0) as c:
+        with pytest.raises(Exception) as err:
+            c.exchange((2.0, 0.0, 1.5), rpm=60_000)
+    assert getattr(err.value, "code", None) == UNKNOWN_SESSION
+
+
+@pytest.mark.parametrize(("bone", "status", "words"), [
+    ({"source": "phantom:nope"}, 404, "unknown phantom"),
+    ({"source": "library:../../etc/passwd", "kind": "ct"}, 400, "leaves the library"),
+    ({"source": "library:/etc/passwd", "kind": "ct"}, 400, "relative"),
+    ({"source": "library:missing.nrrd", "kind": "ct"}, 404, "no 'missing.nrrd'"),
+    ({"source": "library:raw.npy"}, 422, "say which with kind"),
+    ({"source": "library:notes.txt", "kind": "ct"}, 422, "unknown bone format"),
+    ({"source": "upload:0123456789abcdef"}, 404, "no upload"),
+    ({"source": "ftp:x"}, 422, "scheme"),
+    ({"source": "phantom:workpiece", "voxel_mm": 5.0}, 422, "coarser than the burr"),
+])
+def test_bad_bones_are_refused_with_a_reason(api, bone, status, words):
+    r = api.post("/sessions", json={"bone": bone})
+    assert r.status_code == status, r.text
+    assert words in json.dumps(r.json()["detail"])
+
+
+def test_library_bones_load_and_list(api):
+    listing = {e["source"]: e for e in api.get("/library").json()}
+    assert listing["library:block.bone.npz"]["needs_kind"] is False
+    assert listing["library:raw.npy"]["needs_kind"] is True
+    assert "library:notes.txt" not in listing
+    s = _session(api, bone={"source": "library:raw.npy", "kind": "density",
+                            "spacing_mm": [0.25, 0.25, 0.25]})
+    assert s["bone"]["shape"] == [40, 40, 20]
+    api.delete(f"/sessions/{s['id']}")
+
+
+def test_upload_with_a_byte_budget(api, tmp_path):
+    path = tmp_path / "cube.npy"
+    np.save(path, np.full((30, 30, 30), 255, dtype=np.uint8))
+    r = api.post("/uploads", params={"filename": "cube.npy"}, content=path.read_bytes())
+    assert r.status_code == 201, r.text
+    source = r.json()["source"]
+    s = _session(api, bone={"source": source, "kind": "density",
+                            "spacing_mm": [0.2, 0.2, 0.2]})
+    assert s["bone"]["shape"] == [30, 30, 30]
+    api.delete(f"/sessions/{s['id']}")
+    big = b"\0" * (1 << 20) + b"x"
+    r = api.post("/uploads", params={"filename": "big.npy"}, content=big)
+    assert r.status_code == 413 and "limit" in r.json()["detail"]
+    # Streamed without a length: the budget still holds.
+    r = api.post("/uploads", params={"filename": "big.npy"},
+                 content=iter([big[:600_000], big[600_000:]]))
+    assert r.status_code == 413
+    assert api.post("/uploads", params={"filename": "noext"}, content=b"x").status_code == 422
+    assert api.post("/uploads", params={"filename": "e.npy"}, content=b"").status_code == 422
+
+
+def test_a_long_load_is_a_job(api):
+    r = api.post("/sessions", params={"wait": "false"},
+                 json={"bone": {"source": "phantom:workpiece", "voxel_mm": 0.2}})
+    assert r.status_code in (201, 202)
+    s = r.json()
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        job = api.get(f"/jobs/{s['job']}").json()
+        if job["state"] in ("done", "failed"):
+            break
+        time.sleep(0.05)
+    assert job["state"] == "done", job
+    assert api.get(f"/sessions/{s['id']}").json()["state"] == "ready"
+    assert api.get("/jobs/0000000000000000").status_code == 404
+    api.delete(f"/sessions/{s['id']}")
+
+
+# -- parameters -----------------------------------------------------------------------------
+def test_doubling_us_doubles_the_force(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    base = _steady(_groove(stack, s, -4.0))
+    p = api.get(f"/sessions/{sid}/parameters").json()
+    assert p["us_n_mm2"] == pytest.approx(805.1) and p["primary_material_name"] == "cortical"
+    r = api.patch(f"/sessions/{sid}/parameters", json={"us_n_mm2": 2 * 805.1})
+    assert r.status_code == 200 and r.json()["us_n_mm2"] == pytest.approx(1610.2)
+    doubled = _steady(_groove(stack, s, 4.0))
+    np.testing.assert_allclose(doubled, 2.0 * base, rtol=0.02, atol=0.01)
+    # K scales each element's normal force: with the tool axis vertical the tangential
+    # (cutting-velocity) forces are horizontal, so the vertical component doubles with K.
+    api.patch(f"/sessions/{sid}/parameters", json={"us_n_mm2": 805.1, "k": 2.6})
+    k2 = _steady(_groove(stack, s, 0.0))
+    assert k2[2] == pytest.approx(2.0 * base[2], rel=0.03)
+    # A reset reloads the bone and keeps the user's Us/K.
+    r = api.post(f"/sessions/{sid}/reset")
+    assert r.status_code == 202 and r.json()["state"] == "done"
+    assert api.get(f"/sessions/{sid}/parameters").json()["k"] == 2.6
+    assert api.get(f"/sessions/{sid}/state").json()["bone_version"] == 0
+    api.delete(f"/sessions/{sid}")
+
+
+@pytest.mark.parametrize(("body", "words"), [
+    ({"us_n_mm2": -1}, "greater than or equal"),
+    ({"us_n_mm2": "NaN"}, "finite"),
+    ({"radius_mm": 0.2, "shaft_radius_mm": 0.1}, "coarser than the burr"),
+    ({"radius_mm": 0.5}, "shaft radius 1.0 mm must be smaller"),
+    ({"shaft_radius_mm": 3.0}, "shaft radius"),
+    ({"frame": "blender"}, "si_mm"),
+    ({"tool_axis": [0, 0, 0]}, "zero"),
+    ({"primary_material": 9}, "no material with label 9"),
+    ({"bogus": 1}, "extra"),
+])
+def test_bad_parameters_change_nothing(api, body, words):
+    before = api.get("/sessions/1/parameters")
+    if before.status_code == 404:  # the module's first session is made here
+        _session(api, id=1)
+        before = api.get("/sessions/1/parameters")
+    r = api.patch("/sessions/1/parameters", json=body)
+    assert r.status_code == 422, r.text
+    assert words in json.dumps(r.json()["detail"])
+    assert api.get("/sessions/1/parameters").json() == before.json()
+
+
+def test_frame_change_applies_to_the_stream(stack, api):
+    s = _session(api)
+    r = api.patch(f"/sessions/{s['id']}/parameters", json={"frame": "unreal"})
+    assert r.json()["frame"] == "unreal"
+    # Unreal: left-handed Z-up centimetres, x forward, y right. The workpiece's (2, -y, 1.5)
+    # mm is (0.2, y/10, 0.15) cm with y flipped.
+    with BurrClient(*stack.udp_address, session=s["id"], key=s["key"], timeout_s=2.0) as c:
+        c.exchange((0.2, 0.0, 0.15), rpm=60_000, velocity=(0.3, 0, 0), flags=FLAG_NEW_STREAM)
+        reply = [c.exchange((0.2 + 0.0003 * k, 0.0, 0.15), rpm=60_000, velocity=(0.3, 0, 0))
+                 for k in range(1, 60)][-1].reply
+    assert reply.status & STATUS_CUTTING
+    api.delete(f"/sessions/{s['id']}")
+
+
+# -- features -------------------------------------------------------------------------------
+def test_features_off_are_skipped(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    f = api.get(f"/sessions/{sid}/features").json()
+    assert f == {"model": True, "carving": True, "vibration": True, "shaft": True,
+                 "deltas": True, "coupling": False}
+    r = api.put(f"/sessions/{sid}/features", json={**f, "coupling": True})
+    assert r.status_code == 422 and "not available" in r.text
+    api.put(f"/sessions/{sid}/features", json={**f, "carving": False, "vibration": False})
+    replies = _groove(stack, s, 0.0, 60)
+    assert replies[-1].status & STATUS_CUTTING and replies[-1].removed_mm3 == 0.0
+    assert replies[-1].vibration_amplitude == 0.0
+    assert api.get(f"/sessions/{sid}/state").json()["bone_version"] == 0
+    api.put(f"/sessions/{sid}/features", json={**f, "model": False})
+    assert _groove(stack, s, 0.0, 20)[-1].force == (0.0, 0.0, 0.0)
+    api.put(f"/sessions/{sid}/features", json={**f, "deltas": False})
+    r = api.get(f"/sessions/{sid}/export/volume")
+    assert r.status_code == 409 and "deltas off" in r.json()["detail"]
+    api.delete(f"/sessions/{sid}")
+
+
+# -- materials and state ----------------------------------------------------------------------
+def test_materials_and_forbidden_events(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    table = api.get(f"/sessions/{sid}/materials").json()
+    assert table == [{"label": 1, "name": "cortical", "us_n_mm2": 805.1, "k": 1.3,
+                      "forbidden": False}]
+    r = api.patch(f"/sessions/{sid}/materials/1", json={"forbidden": True})
+    assert r.status_code == 200 and r.json()["forbidden"] is True
+    assert api.patch(f"/sessions/{sid}/materials/7", json={"k": 1}).status_code == 404
+    r = api.put(f"/sessions/{sid}/materials/2", json={"name": "cortical", "us_n_mm2": 1,
+                                                      "k": 1})
+    assert r.status_code == 422 and "cortical" in r.text  # names are unique
+    _groove(stack, s, 0.0, 30)
+    state = api.get(f"/sessions/{sid}/state").json()
+    assert state["forbidden_events"] >= 1
+    event = state["events"][0]
+    assert event["material"] == "cortical" and len(event["position_mm"]) == 3
+    assert state["removed_mm3"]["cortical"] > 0 and state["bone_version"] > 0
+    api.delete(f"/sessions/{sid}")
+
+
+# -- exports, deltas, snapshots, recordings --------------------------------------------------
+def test_exports_show_the_groove(stack, api, tmp_path):
+    s = _session(api)
+    sid = s["id"]
+    _groove(stack, s, 0.0, 300)
+    r = api.get(f"/sessions/{sid}/export/volume", params={"format": "nrrd"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/x-nrrd"
+    path = tmp_path / "carved.nrrd"
+    path.write_bytes(r.content)
+    carved = load_bone(path, LoadOptions(kind="density"))
+    pristine = phantom("workpiece", VOXEL_MM)
+    lost = sum(pristine.volumes_mm3().values()) - sum(carved.volumes_mm3().values())
+    removed = api.get(f"/sessions/{sid}/state").json()["removed_mm3"]["cortical"]
+    assert lost == pytest.approx(removed, rel=0.02) and lost > 1.0
+    # The groove is where the burr went: bone missing at (3, 0, -0.2), intact at (3, 5, -0.2).
+    grid = carved.grid
+
+    def at(x, y, z):
+        index = np.rint(grid.to_grid_point((x, y, z)) / grid.spacing_mm).astype(int)
+        return int(grid.density[tuple(index)])
+    assert at(3.0, 0.0, -0.2) == 0 and at(3.0, 5.0, -0.2) == 255
+    npy = api.get(f"/sessions/{sid}/export/volume", params={"format": "npy",
+                                                             "what": "labels"})
+    (tmp_path / "l.npy").write_bytes(npy.content)
+    assert np.load(tmp_path / "l.npy").shape == tuple(s["bone"]["shape"])
+    for fmt, magic in (("stl", None), ("ply", b"ply"), ("obj", b"# burrforce")):
+        m = api.get(f"/sessions/{sid}/export/mesh", params={"format": fmt, "step": 2})
+        assert m.status_code == 200 and len(m.content) > 1000
+        if magic:
+            assert m.content.startswith(magic)
+    assert api.get(f"/sessions/{sid}/export/mesh", params={"level": 1.5}).status_code == 422
+    d = decode_delta(api.get(f"/sessions/{sid}/deltas", params={"since": 0}).content)
+    assert d["count"] > 0 and d["bone_version"] > 0 and d["complete"]
+    r = api.get(f"/sessions/{sid}/deltas", params={"since": 10**9})
+    assert r.status_code == 422 and "newer than the bone" in r.text
+    api.delete(f"/sessions/{sid}")
+
+
+def test_snapshot_and_restore(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    _groove(stack, s, 0.0, 100)
+    version = api.get(f"/sessions/{sid}/state").json()["bone_version"]
+    snap = api.post(f"/sessions/{sid}/snapshot", json={"name": f"groove-{sid}"}).json()
+    assert snap["source"] == f"snapshot:groove-{sid}"
+    assert api.post(f"/sessions/{sid}/snapshot",
+                    json={"name": f"groove-{sid}"}).status_code == 409
+    assert any(x["name"] == f"groove-{sid}" for x in api.get("/snapshots").json())
+    api.post(f"/sessions/{sid}/reset")
+    assert api.get(f"/sessions/{sid}/state").json()["bone_version"] == 0
+    r = api.post(f"/sessions/{sid}/restore", json={"snapshot": f"groove-{sid}"})
+    assert r.json()["state"] == "done"
+    state = api.get(f"/sessions/{sid}/state").json()
+    assert state["bone_version"] == version
+    # A new session can start from it too.
+    t = _session(api, bone={"source": f"snapshot:groove-{sid}"})
+    assert t["state"] == "ready"
+    assert api.post(f"/sessions/{sid}/restore",
+                    json={"snapshot": "../etc"}).status_code == 422
+    assert api.get(f"/snapshots/groove-{sid}").content[:2] == b"PK"
+    api.delete(f"/sessions/{sid}")
+    api.delete(f"/sessions/{t['id']}")
+
+
+def test_recording_replays_exactly(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    _groove(stack, s, -3.0, 50)  # carved before the recording: in its start snapshot
+    r = api.post(f"/sessions/{sid}/recording", json={"name": f"rec-{sid}"})
+    assert r.status_code == 201, r.text
+    assert api.post(f"/sessions/{sid}/recording").status_code == 409
+    replies = _groove(stack, s, 3.0, 200)
+    status = api.get(f"/sessions/{sid}/recording").json()
+    assert status["rows"] >= 200
+    stopped = api.delete(f"/sessions/{sid}/recording").json()
+    assert stopped["name"] == f"rec-{sid}.burrrec"
+    listing = {x["name"]: x for x in api.get("/recordings").json()}
+    assert listing[f"rec-{sid}.burrrec"]["complete"]
+    report = replay(stack.plane.recordings_dir / f"rec-{sid}.burrrec")
+    assert report.reproduced and report.ticks == status["rows"]
+    assert report.removed_mm3 == pytest.approx(sum(r.removed_mm3 for r in replies), rel=1e-6)
+    api.delete(f"/sessions/{sid}")
+
+
+def test_metrics(stack, api):
+    s = _session(api)
+    _groove(stack, s, 0.0, 100)
+    time.sleep(1.2)  # two polls of the statistics
+    text = httpx.get(stack.url + "/metrics",
+                     headers={"Authorization": f"Bearer {TOKEN}"}).text
+    assert 'burrforce_packets_total{outcome="received"}' in text
+    assert f'burrforce_tick_seconds_bucket{{le="+Inf",session="{s["id"]}"}}' in text
+    count = [line for line in text.splitlines()
+             if line.startswith(f'burrforce_tick_seconds_count{{session="{s["id"]}"}}')]
+    assert count and float(count[0].split()[-1]) >= 100
+    assert "burrforce_removed_mm3" in text
+    api.delete(f"/sessions/{s['id']}")
