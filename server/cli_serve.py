@@ -170,10 +170,12 @@ def main(args: argparse.Namespace) -> int:
             _report(stack.stats, session.id, done, say)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
-        server.run()  # until SIGINT/SIGTERM (uvicorn handles both)
-        # A second Ctrl-C must not cut the clean-up short (it is bounded by timeouts).
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        # uvicorn handles SIGINT/SIGTERM while it runs, then restores these handlers and
+        # raises the signal again: they must let the clean-up below run (and a second Ctrl-C
+        # must not cut it short; it is bounded by timeouts).
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, _ignore)
+        server.run()
         done.set()
         conn, conn_path = context.get("conn"), context.get("path")
     finally:
@@ -183,6 +185,10 @@ def main(args: argparse.Namespace) -> int:
             connection.remove(conn_path, only_if=conn)
     say("stopped")
     return 0
+
+
+def _ignore(signum: int, frame: object) -> None:
+    pass
 
 
 def _file_source(path: str, kind: str | None):

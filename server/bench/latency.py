@@ -8,7 +8,12 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
 - ``overhead``: the hot loop with the model stage skipped — decode, tag check, sequence,
   frames, encode, sign: the protocol's own cost;
 - ``cutting``: the hot loop cutting the thesis's workpiece (0.1 mm voxels, α = 60°,
-  0.5 mm deep, 3 mm/s, 60 000 rpm) along a raster of grooves.
+  0.5 mm deep, 3 mm/s, 60 000 rpm) along a raster of grooves, with every scene feature on, as
+  ``burrforce serve`` runs it (a shared-memory bone published to the control plane, the
+  shaft, vibration);
+- ``minimal``: the same cut on its own copy of the bone with the scene features a bare
+  cutting scene can drop turned off (no shaft, no vibration, no publishing): what skipping
+  them saves.
 
 Each paced at 1 kHz (the haptic rate; sends on an absolute schedule) and back-to-back. A
 round trip runs from the client stamping its packet (before encoding, as a real client) to
@@ -38,9 +43,10 @@ from ...proto.tag import Tagger, new_key
 from ..cli_args import float_in, int_in
 from .timing import machine_line
 
-MODES = ("echo", "overhead", "cutting")
+MODES = ("echo", "overhead", "cutting", "minimal")
 OVERHEAD_SESSION = 1
 CUTTING_SESSION = 2
+MINIMAL_SESSION = 3
 #: The cut: the thesis's parallel case at α = 60°, rows across the 26 × 16 mm top face.
 RPM = 60_000.0
 FEED_MM_S = 3.0
@@ -182,15 +188,26 @@ def _pin(*server_pids: int) -> str:
 
 def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 1000.0,
         progress=None) -> dict:
+    import shutil
+
+    from ..bone import ShaftParams, phantom
+    from ..bone.shared import publish, run_directory
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 
     say = progress or (lambda text: None)
     key = new_key()
+    bone = phantom("workpiece", voxel_mm)
+    shared = run_directory(2 * bone.grid.density.size * 4)
     sessions = (
         SessionSpec(OVERHEAD_SESSION, "phantom:workpiece", 0.5, key,
                     SessionConfig(model=False)),
-        SessionSpec(CUTTING_SESSION, "phantom:workpiece", voxel_mm, key, SessionConfig()),
+        SessionSpec(CUTTING_SESSION, publish(bone, shared, "full.bone"), None, key,
+                    SessionConfig(), publish=True),
+        SessionSpec(MINIMAL_SESSION, publish(bone, shared, "minimal.bone"), None, key,
+                    SessionConfig(vibration=None), shaft=ShaftParams(length_mm=0.0),
+                    publish=False),
     )
+    del bone
     say("starting the echo and the hot loop (warm-up compiles or loads the kernels)")
     echo = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.echo"],
                             stdout=subprocess.PIPE, text=True)
@@ -203,6 +220,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             "echo": _Client(("127.0.0.1", echo_port), None, None),
             "overhead": _Client(address, OVERHEAD_SESSION, key),
             "cutting": _Client(address, CUTTING_SESSION, key, _Cut()),
+            "minimal": _Client(address, MINIMAL_SESSION, key, _Cut()),
         }
         results: list[RunStats] = []
         # The client's own collector must not show up as server latency: a full collection
@@ -224,7 +242,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                 c = clients[mode]
                 rtt = np.array(c.rtt_us)
                 fraction = None
-                if mode == "cutting":
+                if mode in ("cutting", "minimal"):
                     mask = np.array(c.cutting, dtype=bool)
                     fraction = float(mask.mean()) if len(mask) else 0.0
                     rtt = rtt[mask]  # the expensive ticks: the burr removing bone
@@ -235,11 +253,13 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                                                                 ("127.0.0.1", echo_port))
     finally:
         hot.stop()
+        shutil.rmtree(shared, ignore_errors=True)
         try:
             echo.wait(2.0)
         except subprocess.TimeoutExpired:
             echo.kill()
     cutting = server["sessions"][CUTTING_SESSION]
+    minimal = server["sessions"][MINIMAL_SESSION]
     paced = {r.mode: r for r in results if r.pacing == "1 kHz"}
     b2b = {r.mode: r for r in results if r.pacing == "back-to-back"}
     return {
@@ -256,6 +276,10 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         "b2b_p99_us": b2b["cutting"].p99_us,
         "server_tick_p50_us": cutting["tick_p50_us"],
         "server_tick_p99_us": cutting["tick_p99_us"],
+        "minimal_p50_us": paced["minimal"].p50_us,
+        "minimal_p99_us": paced["minimal"].p99_us,
+        "server_tick_minimal_p50_us": minimal["tick_p50_us"],
+        "server_tick_minimal_p99_us": minimal["tick_p99_us"],
         "voxel_mm": voxel_mm,
         "placement": placement,
         "rate_hz": rate_hz,
@@ -293,6 +317,14 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"Server-side model stage (carve + force, one numba call) in the cutting session: "
         f"p50 {result['server_tick_p50_us']:.0f} µs, p99 {result['server_tick_p99_us']:.0f} µs "
         "(last 8192 ticks).",
+        "",
+        "Scene features (`minimal`: no shaft, no vibration, no publishing to the control "
+        "plane; the same cut on its own copy of the bone): round trip p50 "
+        f"{result['minimal_p50_us']:.0f} µs against {result['p50_us']:.0f} µs with all on; "
+        f"model stage p50 {result['server_tick_minimal_p50_us']:.0f} µs against "
+        f"{result['server_tick_p50_us']:.0f} µs, p99 "
+        f"{result['server_tick_minimal_p99_us']:.0f} against "
+        f"{result['server_tick_p99_us']:.0f} µs.",
         "",
         "Targets (1 kHz pacing):",
         f"- protocol overhead p50 ≤ 2 × echo p50: {overhead:.0f} µs against "

@@ -1,0 +1,90 @@
+"""``burrforce serve`` as a user runs it: a subprocess with its REST port and UDP port, the
+CLI demo cutting, REST calls changing Us and exporting the carved bone, SIGTERM. Bounded."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from burrforce.client import connection
+from burrforce.server.bone import LoadOptions, load_bone
+
+
+def _demo(env, conn, tmp_path, y_mm: float, plot: bool = False) -> dict:
+    args = [sys.executable, "-m", "burrforce.server.cli", "client", "demo", "--connection",
+            str(conn), "--x-mm", "3", "--y-mm", str(y_mm), "--length-mm", "6", "--json"]
+    if plot:
+        args += ["--plot", str(tmp_path / "demo.png")]
+    demo = subprocess.run(args, capture_output=True, text=True, timeout=120, env=env)
+    assert demo.returncode == 0, demo.stderr
+    return json.loads(demo.stdout)
+
+
+def test_serve_cut_change_us_over_rest_and_export(tmp_path):
+    conn = tmp_path / "connection.json"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("BURRFORCE_TOKEN", None)
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",
+         "--http-port", "0", "--bone", "phantom:workpiece", "--data-dir",
+         str(tmp_path / "data"), "--connection-file", str(conn)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        lines = []
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            text = serve.stdout.readline()
+            lines.append(text)
+            if "Ctrl-C stops" in text or not text:
+                break
+        out = "".join(lines)
+        assert "Ctrl-C stops" in out, out
+        assert conn.exists() and oct(conn.stat().st_mode & 0o777) == "0o600"
+        c = connection.read(conn)
+        token = (tmp_path / "data" / "token").read_text().strip()
+        assert c.token == token and f"token {token}" in out  # shown once, at the first start
+        result = _demo(env, conn, tmp_path, -4.0, plot=True)
+        assert result["lost"] <= 5
+        assert result["surface_z_mm"] == pytest.approx(0.0, abs=0.03)
+        assert result["steady_feed_N"] == pytest.approx(result["model_feed_N"], rel=0.05)
+        assert result["steady_normal_N"] == pytest.approx(result["model_normal_N"], rel=0.05)
+        assert (tmp_path / "demo.png").stat().st_size > 10_000
+        with httpx.Client(base_url=c.http_url + "/v1", timeout=60.0,
+                          headers={"Authorization": f"Bearer {token}"}) as api:
+            r = api.patch(f"/sessions/{c.session}/parameters", json={"us_n_mm2": 1610.2})
+            assert r.status_code == 200, r.text
+            doubled = _demo(env, conn, tmp_path, 4.0)
+            # The demo's model line still uses the thesis's Us; the server now cuts with 2×.
+            assert doubled["steady_feed_N"] == pytest.approx(2 * result["steady_feed_N"],
+                                                             rel=0.05)
+            assert doubled["steady_normal_N"] == pytest.approx(
+                2 * result["steady_normal_N"], rel=0.05)
+            r = api.get(f"/sessions/{c.session}/export/volume")
+            assert r.status_code == 200
+            (tmp_path / "carved.nrrd").write_bytes(r.content)
+        grid = load_bone(tmp_path / "carved.nrrd", LoadOptions(kind="density")).grid
+
+        def at(x, y, z):
+            index = tuple(np.rint(grid.to_grid_point((x, y, z)) / grid.spacing_mm).astype(int))
+            return int(grid.density[index])
+        # Both grooves (y = −4 and y = +4, 0.5 mm deep from x = 3 to 9) are in the export.
+        assert at(6.0, -4.0, -0.25) == 0 and at(6.0, 4.0, -0.25) == 0
+        assert at(6.0, 0.0, -0.25) == 255
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        try:
+            out, _ = serve.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+            raise
+    assert serve.returncode == 0, out
+    assert "stopped" in out
+    assert not conn.exists()
