@@ -370,3 +370,65 @@ def test_metrics(stack, api):
     assert count and float(count[0].split()[-1]) >= 100
     assert "burrforce_removed_mm3" in text
     api.delete(f"/sessions/{s['id']}")
+
+
+def test_engine_changes_keep_the_stream_and_a_frame_change_restarts_it(stack, api):
+    from burrforce.proto.messages import STATUS_STALE
+
+    s = _session(api)
+    sid = s["id"]
+    with BurrClient(*stack.udp_address, session=sid, key=s["key"], timeout_s=2.0) as c:
+        for k in range(20):  # velocity from the client's stamps: a restart makes it stale
+            c.exchange((2.0 + 0.003 * k, 0.0, 1.5), rpm=60_000)
+            time.sleep(0.001)
+        for body in ({"us_n_mm2": 900.0}, {"fd_N": 0.2}, {"min_cutting_rpm": 4000}):
+            assert api.patch(f"/sessions/{sid}/parameters", json=body).status_code == 200
+            r = c.exchange((2.1, 0.0, 1.5), rpm=60_000).reply
+            assert not r.status & STATUS_STALE, body
+        api.patch(f"/sessions/{sid}/materials/1", json={"forbidden": True})
+        assert not c.exchange((2.11, 0.0, 1.5), rpm=60_000).reply.status & STATUS_STALE
+        api.patch(f"/sessions/{sid}/parameters", json={"placement_position": [0, 0, 0.1]})
+        assert c.exchange((2.12, 0.0, 1.5), rpm=60_000).reply.status & STATUS_STALE
+    api.delete(f"/sessions/{sid}")
+
+
+def test_us_set_at_creation_stays_on_its_material_across_a_reset(api):
+    s = _session(api, bone={"source": "phantom:layered", "voxel_mm": 0.25},
+                 parameters={"us_n_mm2": 5000.0})
+    sid = s["id"]
+    assert api.patch(f"/sessions/{sid}/parameters",
+                     json={"primary_material": 2, "k": 0.5}).status_code == 200
+    api.post(f"/sessions/{sid}/reset")
+    table = {m["label"]: m for m in api.get(f"/sessions/{sid}/materials").json()}
+    assert table[1]["us_n_mm2"] == 5000.0 and table[2]["k"] == 0.5
+    assert table[2]["us_n_mm2"] != 5000.0
+    api.delete(f"/sessions/{sid}")
+
+
+def test_deltas_answer_while_a_client_streams(stack, api):
+    import threading
+
+    s = _session(api)
+    stop = threading.Event()
+
+    def cut():
+        with BurrClient(*stack.udp_address, session=s["id"], key=s["key"],
+                        timeout_s=2.0) as c:
+            k = 0
+            while not stop.is_set() and k < 5000:
+                c.exchange((2.0 + 0.003 * k, 0.0, 1.5), rpm=60_000, velocity=FEED)
+                k += 1
+    t = threading.Thread(target=cut)
+    t.start()
+    try:
+        time.sleep(0.3)
+        for _ in range(5):
+            r = api.get(f"/sessions/{s['id']}/deltas", params={"since": 0})
+            assert r.status_code == 200, r.text
+            assert decode_delta(r.content)["count"] > 0
+            assert api.get(f"/sessions/{s['id']}/export/volume",
+                           params={"format": "npy"}).status_code == 200
+    finally:
+        stop.set()
+        t.join(30)
+    api.delete(f"/sessions/{s['id']}")

@@ -54,9 +54,12 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
         return JSONResponse({"detail": errors}, status_code=422)
 
     @app.get(API_PREFIX + "/health", tags=["system"])
-    def health() -> dict:
-        """Liveness without a token: is the hot loop running, how many sessions."""
+    def health(response: Response) -> dict:
+        """Liveness without a token: is the hot loop running (503 if not), how many
+        sessions."""
         alive = plane.hot.is_alive()
+        if not alive:
+            response.status_code = 503
         latest = stats.latest
         return {"status": "ok" if alive else "hot loop down", "hot_loop": alive,
                 "version": __version__,

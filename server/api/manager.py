@@ -96,6 +96,8 @@ class ManagedSession:
     #: Material changes made over REST, per label (None: the primary material), applied again
     #: to every bone this session loads (a reset keeps the user's Us and K).
     overrides: dict = field(default_factory=dict)
+    #: What the hot loop was last sent (params, shaft, config, publish).
+    sent: dict = field(default_factory=dict)
     created_s: float = field(default_factory=time.time)
     #: Serializes changes to this session (loads, parameters, recordings).
     lock: threading.RLock = field(default_factory=threading.RLock)
@@ -179,18 +181,24 @@ class ControlPlane:
             self._stop_recording(session)
             with self._lock:
                 self.sessions.pop(session_id, None)
-            if session.in_loop:
-                self.hot.call("remove_session", session_id=session_id)
-                session.in_loop = False
-            self._drop_bone(session)
+            try:
+                if session.in_loop:
+                    session.in_loop = False
+                    self.call("remove_session", session_id=session_id)
+            except ApiError as exc:  # a dead loop has no session left to remove
+                log.warning("removing session %s from the hot loop: %s", session_id,
+                            exc.detail)
+            finally:
+                self._drop_bone(session)
 
     def load_bone(self, session_id: int, bone: BoneSource, kind: str = "load") -> Job:
         """Replace a session's bone (a new source, a reset or a restore)."""
         session = self.get(session_id)
         with session.lock:
-            if session.state == "loading":
+            job = self.jobs.get(session.job_id or "")
+            if job is not None and job.state in ("queued", "running"):
                 raise ApiError(409, f"session {session_id} is already loading a bone (job "
-                                    f"{session.job_id})")
+                                    f"{job.id})")
             return self._submit(session, kind, bone)
 
     def reset(self, session_id: int) -> Job:
@@ -200,7 +208,7 @@ class ControlPlane:
 
     def restart_stream(self, session_id: int) -> None:
         self.ready(session_id)
-        self.hot.call("restart_stream", session_id=session_id)
+        self.call("restart_stream", session_id=session_id)
 
     # -- loading ------------------------------------------------------------------------------
     def _submit(self, session: ManagedSession, kind: str, bone: BoneSource) -> Job:
@@ -212,7 +220,10 @@ class ControlPlane:
                 if self.jobs[oldest].state in ("queued", "running"):
                     break
                 del self.jobs[oldest]
-        session.state, session.job_id, session.error = "loading", job.id, None
+        # A running session stays ready (cut, exported) on its old bone until the swap.
+        if not session.in_loop:
+            session.state, session.error = "loading", None
+        session.job_id = job.id
         self._loads.submit(self._run_load, session, job, bone)
         return job
 
@@ -244,6 +255,10 @@ class ControlPlane:
                 primary = session.primary_label
                 if primary is None or primary not in materials:
                     primary = default_primary(materials)
+                if None in session.overrides and primary is not None:
+                    overrides = dict(session.overrides)
+                    overrides[primary] = {**overrides.pop(None), **overrides.get(primary, {})}
+                    session.overrides = overrides
                 try:
                     materials = with_overrides(materials, primary, session.overrides)
                 except ValueError as exc:
@@ -252,12 +267,14 @@ class ControlPlane:
                     raise ApiError(422, str(exc)) from None
                 spec = self._spec(session, ref, materials)
                 try:
-                    info = self.hot.call("replace_session" if session.in_loop
-                                         else "add_session", spec=spec)
-                except RuntimeError:
+                    info = self.call("replace_session" if session.in_loop
+                                     else "add_session", spec=spec)
+                except ApiError:
                     reader.close()
                     Path(ref.path).unlink(missing_ok=True)
                     raise
+                # Both processes map it now: the name can go, so no crash leaves it behind.
+                Path(ref.path).unlink(missing_ok=True)
                 old = (session.reader, session.ref)
                 session.in_loop = True
                 session.ref, session.reader = ref, reader
@@ -296,6 +313,9 @@ class ControlPlane:
     def _spec(self, session: ManagedSession, ref: SharedBoneRef,
               materials: MaterialTable) -> SessionSpec:
         key = bytes.fromhex(session.key_hex) if session.key_hex else None
+        session.sent = {"params": session.params, "shaft": session.effective_shaft(),
+                        "config": session.effective_config(),
+                        "publish": session.features.deltas}
         return SessionSpec(session.id, ref, None, key, session.effective_config(),
                            session.params, session.effective_shaft(),
                            materials=materials, publish=session.features.deltas)
@@ -373,8 +393,7 @@ class ControlPlane:
         session.materials, session.primary_label = materials, primary
         session.overrides = overrides
         try:
-            self._push(session, engine=True, config=True,
-                       materials=materials is not old[4])
+            self._push(session, materials=materials is not old[4])
         except Exception:
             (session.params, session.shaft, session.vibration, session.config,
              session.materials, session.primary_label, session.overrides) = old
@@ -386,7 +405,7 @@ class ControlPlane:
             old = session.features
             session.features = features
             try:
-                self._push(session, engine=True, config=True, publish=True)
+                self._push(session)
             except Exception:
                 session.features = old
                 raise
@@ -419,26 +438,41 @@ class ControlPlane:
                 raise
         return session
 
-    def _push(self, session: ManagedSession, engine: bool = False, config: bool = False,
-              materials: bool = False, publish: bool = False) -> None:
-        """Send the session's effective settings to the loop (if it is running there)."""
+    def _push(self, session: ManagedSession, materials: bool = False) -> None:
+        """Send the loop what differs from what it has (if the session runs there): a Us
+        change does not restart the stream, a frame change does."""
         if not session.in_loop:
             return
+        sent = session.sent
         kwargs: dict = {}
-        if engine:
-            kwargs.update(params=session.params, shaft=session.effective_shaft())
+        if session.params != sent.get("params"):
+            kwargs["params"] = session.params
+        if session.effective_shaft() != sent.get("shaft"):
+            kwargs["shaft"] = session.effective_shaft()
         if materials:
             kwargs["materials"] = session.materials.copy()
-        if publish:
+        if session.features.deltas != sent.get("publish"):
             kwargs["publish"] = session.features.deltas
+        config = session.effective_config()
+        if kwargs:
+            self.call("set_engine", session_id=session.id, **kwargs)
+            sent.update({k: v for k, v in kwargs.items() if k != "materials"})
+        if config != sent.get("config"):
+            self.call("configure", session_id=session.id, config=config)
+            sent["config"] = config
+
+    def call(self, command: str, **kwargs: object) -> object:
+        """A hot-loop command, its failures as API errors: the loop's ValueError → 422, a
+        missing session → 404, a dead loop or anything else → 503."""
         try:
-            if kwargs:
-                self.hot.call("set_engine", session_id=session.id, **kwargs)
-            if config:
-                self.hot.call("configure", session_id=session.id,
-                              config=session.effective_config())
+            return self.hot.call(command, **kwargs)
         except RuntimeError as exc:
-            raise ApiError(422 if "ValueError" in str(exc) else 503, str(exc)) from None
+            text = str(exc)
+            if "ValueError" in text or "BoneFileError" in text:
+                raise ApiError(422, text.split("Error: ", 1)[-1]) from None
+            if "KeyError" in text:
+                raise ApiError(404, text.split("Error: ", 1)[-1].strip("'\"")) from None
+            raise ApiError(503, f"the hot loop cannot do it: {text}") from None
 
     # -- reading the bone ---------------------------------------------------------------------
     def snapshot_bone(self, session_id: int) -> Bone:
@@ -486,7 +520,7 @@ class ControlPlane:
             try:
                 from ..record.format import SNAPSHOT_NAME
                 save_bone(bone, path / SNAPSHOT_NAME)
-                result = self.hot.call("start_recording", session_id=session_id,
+                result = self.call("start_recording", session_id=session_id,
                                        path=str(path), snapshot_version=bone.grid.version,
                                        bone_name=session.source.source, max_bytes=max_bytes)
             except Exception:
@@ -499,7 +533,7 @@ class ControlPlane:
         session = self.get(session_id)
         if session.recording is None:
             return None
-        status = self.hot.call("recording_status", session_id=session_id)
+        status = self.call("recording_status", session_id=session_id)
         return {**session.recording, **(status or {})}
 
     def stop_recording(self, session_id: int) -> dict:
@@ -532,12 +566,8 @@ class ControlPlane:
     # -- statistics ---------------------------------------------------------------------------
     def session_state(self, session_id: int, max_events: int = 100) -> dict:
         self.ready(session_id)
-        try:
-            state = self.hot.call("session_state", session_id=session_id,
-                                  max_events=max_events)
-        except RuntimeError as exc:
-            raise ApiError(503, str(exc)) from None
-        return state  # type: ignore[return-value]
+        return self.call("session_state", session_id=session_id,  # type: ignore[return-value]
+                         max_events=max_events)
 
     # -- lifetime -----------------------------------------------------------------------------
     def close(self) -> None:

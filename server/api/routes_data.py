@@ -171,7 +171,8 @@ def deltas(request: Request, session_id: int = SessionPath,
     reader = session.reader
     assert reader is not None
     try:
-        d = reader.read_consistently(lambda grid: brick_delta(grid, since, max_bricks))
+        d = reader.read_consistently(lambda grid: brick_delta(grid, since, max_bricks),
+                                     exact=False)
     except ValueError as exc:
         raise ApiError(422, str(exc)) from None
     except TimeoutError as exc:

@@ -170,6 +170,20 @@ class BoneEngine:
         self._cache = np.zeros(shape, dtype=np.int64)
         self.forget_last_carve()
 
+    def set_materials(self, materials: MaterialTable,
+                      brick_forbidden: np.ndarray | None = None) -> None:
+        """Use another material table. Its forbidden flags need a scan of the grid only if
+        they differ from the current table's; a caller can do that scan beforehand (outside
+        any lock: ``forbidden_bricks`` releases the GIL) and pass the result."""
+        if brick_forbidden is not None:
+            self._brick_forbidden = brick_forbidden
+        elif not np.array_equal(materials.forbidden, self.materials.forbidden):
+            self.materials = materials
+            self.refresh_forbidden()
+            return
+        self.materials = materials
+        self._forbidden_key = (id(materials), materials.forbidden_revision)
+
     def refresh_forbidden(self) -> None:
         """Recompute which bricks hold forbidden structures (a full scan of the grid: done
         automatically when the material table's forbidden flags change, or call it after

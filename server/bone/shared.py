@@ -111,7 +111,13 @@ def publish(bone: Bone, directory: Path, name: str) -> SharedBoneRef:
     d_off, l_off, s_off, b_off, size = _layout(grid.shape)
     path = Path(directory) / name
     with open(path, "xb") as f:
-        f.truncate(size)
+        try:  # reserve the pages now: writing through a map of a full tmpfs is a SIGBUS
+            os.posix_fallocate(f.fileno(), 0, size)
+        except OSError as exc:
+            f.close()
+            path.unlink(missing_ok=True)
+            raise OSError(exc.errno, f"no room for a {size / 2**20:.0f} MB bone in "
+                                     f"{directory}: {exc.strerror}") from None
     with open(path, "r+b") as f, mmap.mmap(f.fileno(), size) as m:
         n = grid.density.size
         np.frombuffer(m, np.uint8, n, d_off)[:] = grid.density.reshape(-1)
@@ -217,18 +223,24 @@ class SharedBone:
         version = since
         while int(self.header[H_SEQ]) != seq:
             seq = self._even(deadline)
+            changed = np.argwhere(self.brick_version > since)
+            since = version
             version = int(self.header[H_VERSION])
-            for bi, bj, bk in np.argwhere(self.brick_version > since):
+            for bi, bj, bk in changed:
                 sl = (slice(bi * BRICK, bi * BRICK + BRICK), slice(bj * BRICK, bj * BRICK + BRICK),
                       slice(bk * BRICK, bk * BRICK + BRICK))
                 out[sl] = self.swept[sl]
         return out, version
 
     def read_consistently(self, read: Callable[[BoneGrid], T], timeout_s: float = 5.0,
-                          attempts: int = 50) -> T:
+                          attempts: int = 50, exact: bool = True) -> T:
         """``read(view)`` on a read-only grid over the mapped voxels, run again until it falls
         between two carving ticks (for small reads: a brick delta, a few voxels). The view's
         ``version`` is the version the result is exact for.
+
+        ``exact=False`` runs ``read`` once, with the version published before it: for readers
+        that tolerate later changes (a brick delta sends a brick caught mid-change again next
+        time, since its stamp is then newer than that version).
 
         Raises:
             TimeoutError: every attempt overlapped a carving tick.
@@ -245,8 +257,10 @@ class SharedBone:
             seq = self._even(deadline)
             self._view.version = int(self.header[H_VERSION])
             result = read(self._view)
-            if int(self.header[H_SEQ]) == seq:
+            if int(self.header[H_SEQ]) == seq or not exact:
                 return result
+            if time.monotonic() > deadline:
+                break
         raise TimeoutError("the bone changed during every read; try again")
 
     def snapshot(self, timeout_s: float = 5.0) -> Bone:
@@ -261,9 +275,9 @@ class SharedBone:
         return Bone(grid, self.materials(), ref.name, ref.format, ref.kind, list(ref.notes))
 
     def close(self) -> None:
-        """Unmap (the arrays handed out must not be used afterwards)."""
-        for name in ("header", "density", "labels", "swept", "brick_version", "_view"):
-            setattr(self, name, None)
+        """Unmap once no array of it is in use any more."""
+        # The arrays stay valid for reads still running (they keep the map alive): only the
+        # handle is dropped here.
         try:
             self._map.close()
         except BufferError:  # views still exported (a Bone still alive): the GC unmaps it

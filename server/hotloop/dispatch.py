@@ -145,8 +145,8 @@ class Dispatcher:
         holds ``lock`` (the loop's): the quantiles are computed after it is released.
 
         With ``tick_times_since`` (session id → a previous ``ticks_timed``; 0 for a session
-        not in it), each session also carries ``new_tick_times_us``: the model-stage times of the ticks since
-        then that are still kept (a metrics poller builds its histogram from them)."""
+        not in it), each session also carries ``new_tick_times_us``: the model-stage times of
+        the ticks since then that are still kept (a metrics poller builds its histogram)."""
         with lock if lock is not None else nullcontext():
             counters = dict(self.counters)
             sessions = {sid: s.stats() for sid, s in self.sessions.items()}

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bone import Bone, BoneEngine, MaterialTable, ShaftParams, load_bone, phantom
+from ..bone.grid import check_voxel_size
 from ..bone.loaders import LoadOptions
 from ..bone.shared import SharedBone, SharedBoneRef
 from ..model.params import CuttingParams
@@ -291,7 +292,8 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
     if command == "session_state":
         with lock:
             session = _session(dispatcher, kwargs["session_id"])
-            events = list(session.engine.events)[-int(kwargs.get("max_events", 100)):]
+            n = int(kwargs.get("max_events", 100))
+            events = list(session.engine.events)[-n:] if n > 0 else []
             stats = session.stats()
         stats.pop("tick_times_us")
         stats["events"] = [e.__dict__ for e in events]
@@ -366,22 +368,39 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
                 params: CuttingParams | None = None, shaft: ShaftParams | None = None,
                 materials: MaterialTable | None = None, publish: bool | None = None) -> None:
     """Change a session's burr, shaft, materials or shared-memory publishing between two
-    packets. Either all of it applies or none (the burr/shaft check runs first)."""
+    packets. Everything is checked before anything changes; the stream goes on.
+
+    A material table with other forbidden flags needs a scan of the grid: it runs here,
+    outside the loop's lock (the kernel releases the GIL), not in the next tick."""
+    from ..bone.bricks import forbidden_bricks
+
+    with lock:
+        engine = _session(dispatcher, session_id).engine
+        grid, current = engine.grid, engine.materials
+    bricks = None
+    if materials is not None and not np.array_equal(materials.forbidden, current.forbidden):
+        bricks = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
+        forbidden_bricks(grid.density, grid.labels, materials.forbidden, bricks)
     with lock:
         session = _session(dispatcher, session_id)
         engine = session.engine
+        if engine.grid is not grid:
+            raise RuntimeError("the session's bone changed meanwhile; try again")
         new_shaft = shaft if shaft is not None else engine.shaft
         new_params = params if params is not None else engine.params
         if new_shaft.length_mm > 0 and new_shaft.radius_mm >= new_params.radius_mm:
             raise ValueError(f"the shaft radius {new_shaft.radius_mm} mm must be smaller than "
                              f"the burr radius {new_params.radius_mm} mm")
-        engine.shaft = new_shaft
-        engine.params = new_params  # validates against the voxels; resets the carve memory
+        check_voxel_size(grid.spacing_mm, new_params.radius_mm)
+        if new_shaft != engine.shaft:
+            engine.shaft = new_shaft
+        if new_params != engine.params:
+            engine.params = new_params  # resets the coverage cache and the carve memory
+            session.engine_changed()
         if materials is not None:
-            engine.materials = materials
+            engine.set_materials(materials, bricks)
         if publish is not None:
             session.publish_bone(publish)
-        session.configure(session.config)  # picks up the minimum cutting speed
 
 
 def _start_recording(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,

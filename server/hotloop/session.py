@@ -134,8 +134,16 @@ class Session:
         self.configure(config if config is not None else SessionConfig())
 
     def configure(self, config: SessionConfig) -> None:
+        """Apply ``config``. A change of frame, tool axis or placement restarts the stream
+        (positions before and after it do not compare); features and limits apply to the
+        next packet of the same stream."""
         frame = frames.frame(config.frame)
         grid = self.engine.grid
+        old = getattr(self, "config", None)
+        geometry_changed = old is None or (
+            (old.frame, old.tool_axis, old.placement_position, old.placement_orientation)
+            != (config.frame, config.tool_axis, config.placement_position,
+                config.placement_orientation))
         self.config = config
         self.transform = frames.Transform(frame, config.placement_position,
                                           config.placement_orientation, grid.direction,
@@ -148,12 +156,21 @@ class Session:
         self._carve = config.carve
         self._vibration = config.vibration
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
-        self.restart_stream()
+        if geometry_changed:
+            self.restart_stream()
 
     def publish_bone(self, on: bool) -> None:
         """Keep (or stop) the counters that let the control plane read a shared bone while it
         is cut: two integer writes per carving tick."""
-        self.engine.grid.shared_header = self._shared_header if on else None
+        header = self._shared_header if on else None
+        if header is not None:
+            header[1] = self.engine.grid.version  # carving went unpublished while it was off
+        self.engine.grid.shared_header = header
+
+    def engine_changed(self) -> None:
+        """After the engine's parameters changed: pick up what the hot path caches (the
+        stream goes on; only the carve memory is reset by the engine)."""
+        self._min_cutting_rpm = self.engine.params.min_cutting_rpm
 
     def restart_stream(self) -> None:
         """Forget the sequence and velocity state: the next packet starts a new stream."""
