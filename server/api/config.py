@@ -11,6 +11,7 @@ TOML (``burrforce serve --config FILE``)::
     bone_library = "/srv/bones" # bones sessions may load by name (library:NAME)
     upload_max_mb = 1024
     cors_origins = []           # browser origins allowed to call the API (default none)
+    max_sessions = 16           # sessions held at once (each keeps its bone in memory)
 
     [session]                   # the default session serve starts with
     bone = "phantom:temporal"
@@ -57,6 +58,7 @@ class ServeConfig:
         bone_library: a folder of bone files sessions may load as ``library:NAME``.
         upload_max_mb: the largest bone upload accepted, MB.
         cors_origins: browser origins allowed to call the API; empty turns CORS off.
+        max_sessions: sessions the server holds at once (each keeps its bone in memory).
         bone, voxel_mm, frame: the default session's bone and engine frame.
         session_id: the default session's id.
         key: the default session's key in hex; None makes a fresh one. ``no_auth`` drops it
@@ -71,6 +73,7 @@ class ServeConfig:
     bone_library: Path | None = None
     upload_max_mb: float = 1024.0
     cors_origins: tuple[str, ...] = ()
+    max_sessions: int = 16
     bone: str = "phantom:temporal"
     voxel_mm: float | None = None
     frame: str = "si_mm"
@@ -83,6 +86,10 @@ class ServeConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 65535:
                 raise ValueError(f"{name} must be a port number 0..65535, got {value!r}")
+        if isinstance(self.max_sessions, bool) or not isinstance(self.max_sessions, int) \
+                or self.max_sessions < 1:
+            raise ValueError(f"max_sessions must be a positive integer, got "
+                             f"{self.max_sessions!r}")
         if not (isinstance(self.upload_max_mb, (int, float)) and
                 math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
             raise ValueError(f"upload_max_mb must be a positive number, got "
@@ -98,7 +105,7 @@ class ServeConfig:
 
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
-                    "upload_max_mb", "cors_origins"),
+                    "upload_max_mb", "cors_origins", "max_sessions"),
          "session": ("bone", "voxel_mm", "frame", "session_id", "key", "no_auth")}
 
 

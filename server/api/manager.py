@@ -148,6 +148,10 @@ class ControlPlane:
                               SessionConfig(), features)
         self._apply_parameters(base, params, check_bone=False)
         with self._lock:
+            if len(self.sessions) >= self.config.max_sessions:
+                raise ApiError(429, f"the server holds its maximum of "
+                                    f"{self.config.max_sessions} sessions (max_sessions): "
+                                    "delete one first")
             if session_id is None:
                 session_id = next(i for i in range(1, 1 << 32) if i not in self.sessions)
             elif session_id in self.sessions:
