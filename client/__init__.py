@@ -1,8 +1,10 @@
-"""burrforce client: talks to a running burrforce server over its UDP wire protocol."""
+"""burrforce client: talks to a running burrforce server over its UDP wire protocol, and to its
+REST control plane (``BurrRest``)."""
 
 from .aio import AsyncBurrClient
+from .rest import BurrRest, RestError
 from .trajectory import StreamResult, Waypoint, line, stream
 from .udp import BurrClient, Result, ServerError
 
-__all__ = ["AsyncBurrClient", "BurrClient", "Result", "ServerError", "StreamResult",
-           "Waypoint", "line", "stream"]
+__all__ = ["AsyncBurrClient", "BurrClient", "BurrRest", "RestError", "Result", "ServerError",
+           "StreamResult", "Waypoint", "line", "stream"]

@@ -45,7 +45,10 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=headers)
+        # 422 keeps FastAPI's documented form (a list of errors) for every cause.
+        detail = ([{"loc": [], "msg": exc.detail, "type": "value_error"}]
+                  if exc.status == 422 else exc.detail)
+        return JSONResponse({"detail": detail}, status_code=exc.status, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -429,7 +429,7 @@ class ControlPlane:
                 else:
                     table.update(label, **(changes or {}))
             except (KeyError, ValueError) as exc:
-                raise ApiError(422, str(exc).strip("'\"")) from None
+                raise ApiError(422, str(exc.args[0]) if exc.args else str(exc)) from None
             old = session.materials, session.overrides
             m = table[label]
             session.materials = table

@@ -188,7 +188,11 @@ def get_materials(request: Request, session_id: int = SessionPath) -> list[dict]
 @router.put("/sessions/{session_id}/materials/{label}")
 def put_material(body: MaterialBody, request: Request, session_id: int = SessionPath,
                  label: int = Path(ge=1, le=255)) -> dict:
-    s = _plane(request).set_material(session_id, label, Material(**body.model_dump()))
+    try:
+        material = Material(**body.model_dump())
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
+    s = _plane(request).set_material(session_id, label, material)
     return {"label": label, **asdict(s.materials[label])}
 
 

@@ -81,8 +81,8 @@ class SessionConfig:
 
     def __post_init__(self) -> None:
         frames.frame(self.frame)
-        if self.tool_axis is not None:
-            _unit("tool_axis", self.tool_axis)
+        if self.tool_axis is not None:  # stored as unit vectors (frozen: set directly)
+            object.__setattr__(self, "tool_axis", _unit("tool_axis", self.tool_axis))
         for name, value in (("gap_s", self.gap_s), ("idle_restart_s", self.idle_restart_s),
                             ("max_speed_mm_s", self.max_speed_mm_s)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
@@ -91,16 +91,22 @@ class SessionConfig:
         if len(self.placement_position) != 3 or not all(
                 math.isfinite(x) for x in self.placement_position):
             raise ValueError("placement_position must be 3 finite numbers")
-        _unit("placement_orientation", self.placement_orientation, 4)
+        object.__setattr__(self, "placement_orientation",
+                           _unit("placement_orientation", self.placement_orientation, 4))
 
 
 def _unit(name: str, v: tuple[float, ...], n: int = 3) -> tuple[float, ...]:
     if len(v) != n or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
         raise ValueError(f"{name} must be {n} finite numbers, got {v!r}")
-    norm = math.sqrt(sum(x * x for x in v))
-    if norm < 1e-6:
+    # Scaled first: a huge but finite vector must not overflow to an infinite norm.
+    scale = max(abs(x) for x in v)
+    if scale == 0.0:
         raise ValueError(f"{name} must not be zero")
-    return tuple(x / norm for x in v)
+    w = [x / scale for x in v]
+    norm = math.sqrt(sum(x * x for x in w))
+    if norm * scale < 1e-6:
+        raise ValueError(f"{name} must not be zero")
+    return tuple(x / norm for x in w)
 
 
 class Session:

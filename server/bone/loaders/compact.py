@@ -89,6 +89,7 @@ def read_compact(path: Path, archive: zipfile.ZipFile, max_voxels: int) -> Bone:
                         origin_mm=meta_arrays["origin_mm"], direction=meta_arrays["direction"],
                         labels=arrays["labels"], swept=arrays["swept"])
         grid.version = int(meta.get("bone_version", 0))
+        _stamp_carved_bricks(grid)
         notes = [str(n) for n in meta.get("notes", [])]
     except (ValueError, TypeError, KeyError) as exc:  # JSONDecodeError is a ValueError
         raise BoneFileError(path, f"not a valid burrforce bone: {exc}") from None
@@ -104,3 +105,18 @@ def _text(array: np.ndarray) -> str:
     if array.dtype != np.uint8 or array.ndim != 1:
         raise ValueError("metadata must be UTF-8 bytes")
     return array.tobytes().decode("utf-8")
+
+
+def _stamp_carved_bricks(grid: BoneGrid) -> None:
+    """Bricks holding carved bone get the bone's version, so "the bricks changed since version
+    0" (deltas) covers the carving a restored bone arrived with."""
+    if grid.version == 0:
+        return
+    from ..bricks import BRICK
+
+    nb = grid.brick_version.shape
+    carved = np.zeros(tuple(n * BRICK for n in nb), dtype=bool)
+    nx, ny, nz = grid.shape
+    carved[:nx, :ny, :nz] = (grid.swept != 0) & (grid.density != 0)
+    hit = carved.reshape(nb[0], BRICK, nb[1], BRICK, nb[2], BRICK).any(axis=(1, 3, 5))
+    grid.brick_version[hit] = grid.version

@@ -1,0 +1,542 @@
+"""A small typed client of the REST control plane (``burrforce serve``'s ``/v1`` API).
+
+Forces stream over UDP (:class:`burrforce.client.BurrClient`); this client configures what
+they are computed from: sessions, bones, parameters, features, materials, and fetches what
+comes out: state, exports, brick deltas, snapshots, recordings, metrics. ::
+
+    from burrforce.client.rest import BurrRest
+
+    with BurrRest.from_connection() as api:       # the file `burrforce serve` wrote
+        s = api.create_session("phantom:workpiece", voxel_mm=0.25)
+        # ... stream poses to s["udp"] with session s["id"] and key s["key"] ...
+        api.set_parameters(s["id"], us_n_mm2=1610.0, k=0.5)
+        api.export_mesh(s["id"], "bone.stl")
+
+Units are in the names, as in the API: mm, N, rpm, N/mm², s. Every method raises
+:class:`RestError` when the server refuses (with its status and its ``detail``) or cannot be
+reached (status 0). Needs ``httpx`` (``pip install burrforce[test]`` or ``pip install httpx``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import httpx
+import msgpack
+import numpy as np
+
+from . import connection
+
+API_PREFIX = "/v1"
+#: How long a call that waits for a bone load may take, s (the server waits up to 600 s).
+LOAD_TIMEOUT_S = 600.0
+#: Download and upload chunk size, bytes.
+CHUNK_BYTES = 1 << 20
+#: The brick-delta message this client reads (``burrforce.server.bone.deltas``).
+DELTA_FORMAT = "burrforce-bricks"
+DELTA_FORMAT_VERSION = 1
+BRICK = 8
+
+VolumeFormat = Literal["nrrd", "npy"]
+VolumeWhat = Literal["remaining", "labels", "swept", "density"]
+MeshFormat = Literal["stl", "ply", "obj"]
+BoneKind = Literal["ct", "labels", "density"]
+
+
+class RestError(Exception):
+    """The server refused a request, or could not be reached.
+
+    Attributes:
+        status: the HTTP status (0: no answer: connection refused, timed out, reset).
+        detail: the server's explanation as one readable line (for a request the API's
+            validation rejected: ``"body.radius_mm: Input should be greater than 0.001"``,
+            one such part per problem, joined by ``"; "``).
+        errors: the validation problems as the server sent them (a list of
+            ``{"loc", "msg", "type"}``), empty for other errors.
+        method, url: the request.
+    """
+
+    def __init__(self, status: int, detail: str, errors: Sequence[Mapping[str, Any]] = (),
+                 method: str = "", url: str = "") -> None:
+        self.status = status
+        self.detail = detail
+        self.errors = list(errors)
+        self.method = method
+        self.url = url
+        where = f" ({method} {url})" if method else ""
+        super().__init__(f"{status}: {detail}{where}" if status else f"{detail}{where}")
+
+
+def _readable(detail: object) -> tuple[str, list]:
+    """The server's ``detail`` as one line, and the validation errors if it was a list."""
+    if isinstance(detail, list):
+        parts = []
+        for e in detail:
+            if isinstance(e, Mapping):
+                loc = ".".join(str(x) for x in e.get("loc", ()))
+                parts.append(f"{loc}: {e.get('msg', '')}" if loc else str(e.get("msg", "")))
+            else:
+                parts.append(str(e))
+        return "; ".join(parts) or "invalid request", [e for e in detail
+                                                        if isinstance(e, Mapping)]
+    return str(detail), []
+
+
+class BurrRest:
+    """A client of one server's REST API.
+
+    Args:
+        url: the server's base URL, e.g. ``http://127.0.0.1:47811`` (a trailing ``/v1`` is
+            accepted).
+        token: the bearer token ``burrforce serve`` printed (or kept in DATA_DIR/token).
+        timeout_s: connect, read and write timeout of one request, s.
+        load_timeout_s: the read timeout of calls that wait for a bone load (create a
+            session, load a bone, reset, restore with ``wait=True``), s.
+        transport: an httpx transport (tests: ``httpx.ASGITransport(app)``); default: HTTP.
+    """
+
+    def __init__(self, url: str, token: str, timeout_s: float = 30.0, *,
+                 load_timeout_s: float = LOAD_TIMEOUT_S,
+                 transport: httpx.BaseTransport | None = None) -> None:
+        base = url.rstrip("/")
+        if base.endswith(API_PREFIX):
+            base = base[: -len(API_PREFIX)]
+        self.url = base
+        self.timeout_s = float(timeout_s)
+        self.load_timeout_s = float(load_timeout_s)
+        self._http = httpx.Client(base_url=base, transport=transport,
+                                  headers={"Authorization": f"Bearer {token}",
+                                           "Accept": "application/json"},
+                                  timeout=httpx.Timeout(self.timeout_s))
+
+    @classmethod
+    def from_connection(cls, path: str | Path | None = None,
+                        timeout_s: float = 30.0) -> BurrRest:
+        """The server a connection file describes (default: the one a local
+        ``burrforce serve`` wrote; see :func:`burrforce.client.connection.default_path`).
+
+        Raises:
+            ValueError: no connection file, or one without a REST URL and token.
+        """
+        c = connection.read(Path(path) if path is not None else None)
+        if not c.http_url or not c.token:
+            raise ValueError("the connection file has no REST URL and token (written by an "
+                             "older server?): give BurrRest(url, token)")
+        return cls(c.http_url, c.token, timeout_s)
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> BurrRest:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"BurrRest({self.url!r})"
+
+    # -- plumbing -------------------------------------------------------------------------------
+    def _send(self, method: str, path: str, *, stream: bool = False, wait: bool = False,
+              **kwargs: Any) -> httpx.Response:
+        """One request; non-2xx answers and transport failures become RestError. A streamed
+        response must be closed by the caller."""
+        if wait:
+            kwargs["timeout"] = httpx.Timeout(self.timeout_s, read=max(self.timeout_s,
+                                                                       self.load_timeout_s))
+        request = self._http.build_request(method, path, **kwargs)
+        try:
+            response = self._http.send(request, stream=stream)
+        except httpx.TimeoutException as exc:
+            raise RestError(0, f"no answer from {self.url} in time ({type(exc).__name__})",
+                            method=method, url=str(request.url)) from exc
+        except httpx.TransportError as exc:
+            raise RestError(0, f"cannot reach {self.url}: {exc}", method=method,
+                            url=str(request.url)) from exc
+        if response.is_success:
+            return response
+        try:
+            response.read()
+            body = response.json()
+            detail = body["detail"] if isinstance(body, dict) and "detail" in body else body
+        except (ValueError, httpx.HTTPError):
+            detail = response.text.strip() or response.reason_phrase
+        finally:
+            response.close()
+        text, errors = _readable(detail)
+        raise RestError(response.status_code, text, errors, method, str(request.url))
+
+    def _json(self, method: str, path: str, **kwargs: Any) -> Any:
+        response = self._send(method, API_PREFIX + path, **kwargs)
+        if response.status_code == 204 or not response.content:
+            return None
+        return response.json()
+
+    def _download(self, path: str, params: dict, target: str | Path) -> Path:
+        """Stream a file answer to ``target`` (through ``target.part``, so a failed download
+        leaves no partial file)."""
+        target = Path(target)
+        part = target.with_name(target.name + ".part")
+        response = self._send("GET", API_PREFIX + path, params=params, stream=True)
+        try:
+            with open(part, "wb") as f:
+                for chunk in response.iter_bytes(CHUNK_BYTES):
+                    f.write(chunk)
+            os.replace(part, target)
+        except httpx.HTTPError as exc:
+            raise RestError(0, f"the download from {self.url} broke off: {exc}", method="GET",
+                            url=str(response.request.url)) from exc
+        finally:
+            response.close()
+            part.unlink(missing_ok=True)
+        return target
+
+    # -- system ---------------------------------------------------------------------------------
+    def health(self) -> dict:
+        """Liveness (needs no token): ``status``, ``hot_loop``, ``version``, ``sessions``,
+        ``udp`` {host, port}, ``packets_received``."""
+        return self._json("GET", "/health")
+
+    def metrics_text(self) -> str:
+        """The Prometheus exposition text (packets by outcome, tick-time histogram in s,
+        per-session counters, bone versions, removed volume in mm³)."""
+        return self._send("GET", "/metrics").text
+
+    # -- sessions -------------------------------------------------------------------------------
+    def create_session(self, bone: str = "phantom:temporal", kind: BoneKind | None = None,
+                       voxel_mm: float | None = None, parameters: Mapping[str, Any] | None = None,
+                       features: Mapping[str, bool] | None = None, authenticated: bool = True,
+                       wait: bool = True, *, id: int | None = None,
+                       spacing_mm: Sequence[float] | None = None) -> dict:
+        """Create a session on a bone.
+
+        Args:
+            bone: ``phantom:NAME``, ``library:PATH``, ``upload:ID`` (see :meth:`upload`) or
+                ``snapshot:NAME``.
+            kind: what a file's voxels are (``ct``, ``labels``, ``density``); required for
+                npy, npz, NRRD, NIfTI and PNG.
+            voxel_mm: a phantom's voxel size, mm.
+            parameters: initial parameters (the fields of :meth:`set_parameters`).
+            features: initial features (the fields of :meth:`set_features`).
+            authenticated: give the session a key (datagrams are tagged); False only for
+                loopback development.
+            wait: answer when the bone is loaded (else at once, state ``loading``; follow
+                ``job`` with :meth:`wait_for_job`).
+            id: the session id (default: the lowest free one from 1).
+            spacing_mm: voxel size of npy and PNG files (x, y, z), mm.
+
+        Returns:
+            The session: ``id``, ``key`` (hex; shown only here), ``udp`` {host, port},
+            ``state``, ``job``, ``bone`` (shape, spacing_mm, origin_mm, …), ``features``, …
+
+        Raises:
+            RestError: 404 when the source does not exist, 400 for a library path outside
+                the library, 422 when the request is invalid or the bone cannot be loaded,
+                409 when ``id`` is taken.
+        """
+        body: dict[str, Any] = {"bone": _bone_request(bone, kind, voxel_mm, spacing_mm),
+                                "authenticated": authenticated,
+                                "parameters": _jsonable(dict(parameters or {})),
+                                "features": dict(features or {})}
+        if id is not None:
+            body["id"] = id
+        return self._json("POST", "/sessions", json=body, params={"wait": _flag(wait)},
+                          wait=wait)
+
+    def sessions(self) -> list[dict]:
+        """Every session (without keys), by id."""
+        return self._json("GET", "/sessions")
+
+    def session(self, session_id: int) -> dict:
+        """One session: state, bone, features, UDP endpoint, recording."""
+        return self._json("GET", f"/sessions/{int(session_id)}")
+
+    def delete_session(self, session_id: int) -> None:
+        """Remove the session (its datagrams then get UNKNOWN_SESSION notices)."""
+        self._json("DELETE", f"/sessions/{int(session_id)}")
+
+    def reset(self, session_id: int, wait: bool = True) -> dict:
+        """Reload the bone from its source (uncarved; Us and K set here are kept) and start a
+        new stream. Returns the load job (see :meth:`job`)."""
+        return self._json("POST", f"/sessions/{int(session_id)}/reset",
+                          params={"wait": _flag(wait)}, wait=wait)
+
+    def restart_stream(self, session_id: int) -> None:
+        """Forget the stream's sequence and velocity: the next datagram starts a new stream."""
+        self._json("POST", f"/sessions/{int(session_id)}/restart-stream")
+
+    def load_bone(self, session_id: int, source: str, kind: BoneKind | None = None,
+                  voxel_mm: float | None = None, spacing_mm: Sequence[float] | None = None,
+                  wait: bool = True) -> dict:
+        """Load another bone into the session (the stream continues on it). Arguments as in
+        :meth:`create_session`. Returns the load job; a failed load leaves the old bone (the
+        job's ``state`` is ``failed``, its ``error`` says why)."""
+        return self._json("PUT", f"/sessions/{int(session_id)}/bone",
+                          json=_bone_request(source, kind, voxel_mm, spacing_mm),
+                          params={"wait": _flag(wait)}, wait=wait)
+
+    def job(self, job_id: str) -> dict:
+        """A bone load: ``state`` (queued, running, done, failed), ``error``, ``progress``
+        {stage, done, total}."""
+        return self._json("GET", f"/jobs/{job_id}")
+
+    def wait_for_job(self, job_id: str, timeout_s: float = LOAD_TIMEOUT_S,
+                     poll_s: float = 0.05) -> dict:
+        """Poll :meth:`job` until it is done or failed (at most ``timeout_s``, s).
+
+        Raises:
+            TimeoutError: still queued or running after ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            j = self.job(job_id)
+            if j["state"] not in ("queued", "running"):
+                return j
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"job {job_id} is still {j['state']} after {timeout_s} s "
+                                   f"({j['progress']})")
+            time.sleep(poll_s)
+
+    # -- parameters, features, materials --------------------------------------------------------
+    def parameters(self, session_id: int) -> dict:
+        """The session's parameters: ``us_n_mm2`` (N/mm²) and ``k`` of the primary material,
+        ``fd_N``, ``g``, ``harmonic``, ``radius_mm``, ``spin``, ``min_cutting_rpm``,
+        ``shaft_radius_mm``, ``shaft_length_mm``, ``shaft_stiffness_n_mm3``, ``frame``,
+        ``tool_axis``, ``placement_position`` (engine units), ``placement_orientation``
+        (x, y, z, w)."""
+        return self._json("GET", f"/sessions/{int(session_id)}/parameters")
+
+    def set_parameters(self, session_id: int, **fields: Any) -> dict:
+        """Change any subset of :meth:`parameters` (e.g. ``us_n_mm2=1610.0, k=0.5``); all or
+        nothing. Returns the parameters after the change.
+
+        Raises:
+            RestError: 422 for a value out of range or an unknown field (``detail`` names
+                it).
+        """
+        return self._json("PATCH", f"/sessions/{int(session_id)}/parameters",
+                          json=_jsonable(fields))
+
+    def features(self, session_id: int) -> dict:
+        """What the session's scene uses: ``model``, ``carving``, ``vibration``, ``shaft``,
+        ``deltas``, ``coupling`` (booleans)."""
+        return self._json("GET", f"/sessions/{int(session_id)}/features")
+
+    def set_features(self, session_id: int, **fields: bool) -> dict:
+        """Turn features on or off (e.g. ``vibration=False``); the others keep their state
+        (read first, then written whole: not atomic against another writer). Returns the
+        features after the change."""
+        current = self.features(session_id)
+        return self._json("PUT", f"/sessions/{int(session_id)}/features",
+                          json={**current, **fields})
+
+    def materials(self, session_id: int) -> list[dict]:
+        """The material table: ``label``, ``name``, ``us_n_mm2`` (N/mm²), ``k``,
+        ``forbidden``."""
+        return self._json("GET", f"/sessions/{int(session_id)}/materials")
+
+    def set_material(self, session_id: int, label: int, *, name: str | None = None,
+                     us_n_mm2: float | None = None, k: float | None = None,
+                     forbidden: bool | None = None, replace: bool = False) -> dict:
+        """Change material ``label`` (1..255): the fields given (PATCH), or with
+        ``replace=True`` set it whole (PUT: ``name``, ``us_n_mm2`` and ``k`` required; adds a
+        label the bone lacks). Returns the material."""
+        fields = {k_: v for k_, v in (("name", name), ("us_n_mm2", us_n_mm2), ("k", k),
+                                      ("forbidden", forbidden)) if v is not None}
+        return self._json("PUT" if replace else "PATCH",
+                          f"/sessions/{int(session_id)}/materials/{int(label)}", json=fields)
+
+    def state(self, session_id: int, max_events: int = 100) -> dict:
+        """Bone version, removed volume per material (mm³), the latest ``max_events``
+        forbidden-contact events, counters, tick-time quantiles (µs)."""
+        return self._json("GET", f"/sessions/{int(session_id)}/state",
+                          params={"max_events": int(max_events)})
+
+    # -- exports --------------------------------------------------------------------------------
+    def export_volume(self, session_id: int, path: str | Path, format: VolumeFormat = "nrrd",
+                      what: VolumeWhat = "remaining") -> Path:
+        """Download the carved volume to ``path`` (streamed): ``remaining`` bone 0–255,
+        ``labels``, ``swept`` or the original ``density``. NRRD carries the geometry (LPS,
+        mm) and the bone version; npy is the bare uint8 array. Returns ``path``."""
+        return self._download(f"/sessions/{int(session_id)}/export/volume",
+                              {"format": format, "what": what}, path)
+
+    def export_mesh(self, session_id: int, path: str | Path, format: MeshFormat = "stl",
+                    step: int = 1, level: float = 0.5,
+                    materials: Sequence[int] | None = None) -> Path:
+        """Download the carved bone's surface (marching cubes at iso-level ``level`` of the
+        bone fraction, every ``step`` voxels, only ``materials`` labels if given) in the
+        bone's world frame, mm. Returns ``path``."""
+        params: dict[str, Any] = {"format": format, "step": int(step), "level": float(level)}
+        if materials is not None:
+            params["material"] = [int(m) for m in materials]
+        return self._download(f"/sessions/{int(session_id)}/export/mesh", params, path)
+
+    def deltas(self, session_id: int, since: int, max_bricks: int = 4096) -> dict:
+        """The 8³-voxel bricks changed since bone version ``since``.
+
+        Returns the message of ``burrforce.server.bone.deltas`` (format
+        ``burrforce-bricks`` 1) with ``bricks`` as int32 (count, 3) brick indices and
+        ``remaining`` as uint8 (count, 8, 8, 8) remaining densities: brick (a, b, c) covers
+        voxels [8a:8a+8, 8b:8b+8, 8c:8c+8]. Ask next with ``since=next_since``; on
+        ``reload`` fetch the whole volume (:meth:`export_volume`).
+
+        Raises:
+            RestError: 409 when the session has deltas off; status 0 for an answer that is
+                not such a message.
+        """
+        response = self._send("GET", f"{API_PREFIX}/sessions/{int(session_id)}/deltas",
+                              params={"since": int(since), "max_bricks": int(max_bricks)})
+        try:
+            return decode_bricks(response.content)
+        except ValueError as exc:
+            raise RestError(0, str(exc), method="GET", url=str(response.request.url)) from None
+
+    # -- bones ----------------------------------------------------------------------------------
+    def phantoms(self) -> list[dict]:
+        """Built-in bones: ``source`` (``phantom:NAME``), ``description``,
+        ``default_voxel_mm``."""
+        return self._json("GET", "/phantoms")
+
+    def library(self) -> list[dict]:
+        """Bone files in the server's library: ``source`` (``library:PATH``), ``format``,
+        ``folder``, ``bytes``, ``needs_kind``."""
+        return self._json("GET", "/library")
+
+    def upload(self, path: str | Path, filename: str | None = None) -> str:
+        """Upload one bone file (streamed; its suffix tells the format) and return its source
+        (``upload:ID``) for :meth:`create_session` or :meth:`load_bone`.
+
+        Raises:
+            RestError: 413 over the server's limit, 422 without a known suffix or empty.
+        """
+        path = Path(path)
+        size = path.stat().st_size
+
+        def chunks() -> Iterator[bytes]:
+            with open(path, "rb") as f:
+                while chunk := f.read(CHUNK_BYTES):
+                    yield chunk
+
+        answer = self._json("POST", "/uploads", params={"filename": filename or path.name},
+                            content=chunks(),
+                            headers={"Content-Type": "application/octet-stream",
+                                     "Content-Length": str(size)})
+        return answer["source"]
+
+    # -- snapshots ------------------------------------------------------------------------------
+    def snapshot(self, session_id: int, name: str | None = None) -> dict:
+        """Save the session's bone as it is now; returns ``name``, ``source``
+        (``snapshot:NAME``), ``bytes``, ``created``."""
+        return self._json("POST", f"/sessions/{int(session_id)}/snapshot",
+                          json={"name": name} if name is not None else {})
+
+    def snapshots(self) -> list[dict]:
+        """The saved snapshots."""
+        return self._json("GET", "/snapshots")
+
+    def download_snapshot(self, name: str, path: str | Path) -> Path:
+        """Download snapshot ``name`` (a ``.bone.npz``) to ``path``."""
+        return self._download(f"/snapshots/{_snapshot_name(name)}", {}, path)
+
+    def restore(self, session_id: int, snapshot: str, wait: bool = True) -> dict:
+        """Load snapshot ``snapshot`` (``NAME`` or ``snapshot:NAME``) into the session, its
+        carving included. Returns the load job."""
+        return self._json("POST", f"/sessions/{int(session_id)}/restore",
+                          json={"snapshot": _snapshot_name(snapshot)},
+                          params={"wait": _flag(wait)}, wait=wait)
+
+    # -- recordings -----------------------------------------------------------------------------
+    def start_recording(self, session_id: int, name: str | None = None,
+                        max_mb: float | None = None) -> dict:
+        """Record the session's stream from now on (``burrforce replay`` re-runs it); it stops
+        at ``max_mb`` MB (server default 2048). Returns ``name``, ``path``, …"""
+        body: dict[str, Any] = {}
+        if name is not None:
+            body["name"] = name
+        if max_mb is not None:
+            body["max_mb"] = float(max_mb)
+        return self._json("POST", f"/sessions/{int(session_id)}/recording", json=body)
+
+    def recording(self, session_id: int) -> dict:
+        """The running recording's status (404 when the session is not recording)."""
+        return self._json("GET", f"/sessions/{int(session_id)}/recording")
+
+    def stop_recording(self, session_id: int) -> dict:
+        """Stop recording; returns what was recorded."""
+        return self._json("DELETE", f"/sessions/{int(session_id)}/recording")
+
+    def recordings(self) -> list[dict]:
+        """The recordings on the server: ``name``, ``bytes``, ``complete``, ``replay``."""
+        return self._json("GET", "/recordings")
+
+
+def decode_bricks(data: bytes) -> dict:
+    """A brick-delta message (msgpack, format ``burrforce-bricks`` 1) as a dict whose
+    ``bricks`` is int32 (count, 3) and ``remaining`` uint8 (count, 8, 8, 8).
+
+    Raises:
+        ValueError: not msgpack, another format or version, or arrays that disagree with
+            ``count``.
+    """
+    try:
+        d = msgpack.unpackb(data, raw=False)
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        raise ValueError(f"not a msgpack brick delta: {exc}") from None
+    if not isinstance(d, dict) or d.get("format") != DELTA_FORMAT:
+        raise ValueError(f"not a {DELTA_FORMAT} message")
+    if d.get("format_version") != DELTA_FORMAT_VERSION:
+        raise ValueError(f"{DELTA_FORMAT} format_version {d.get('format_version')!r} is not "
+                         f"supported (this client reads {DELTA_FORMAT_VERSION})")
+    count, bricks, remaining = d.get("count"), d.get("bricks"), d.get("remaining")
+    voxels = BRICK ** 3
+    if isinstance(count, bool) or not isinstance(count, int) or count < 0 \
+            or not isinstance(bricks, bytes) or not isinstance(remaining, bytes) \
+            or len(bricks) != 12 * count or len(remaining) != voxels * count \
+            or d.get("brick") != BRICK:
+        raise ValueError(f"malformed {DELTA_FORMAT} message: count, brick, bricks and "
+                         "remaining disagree")
+    d["bricks"] = np.frombuffer(bricks, dtype="<i4").reshape(count, 3).astype(np.int32)
+    d["remaining"] = np.frombuffer(remaining, dtype=np.uint8).reshape(
+        count, BRICK, BRICK, BRICK).copy()
+    return d
+
+
+def _bone_request(source: str, kind: str | None, voxel_mm: float | None,
+                  spacing_mm: Sequence[float] | None) -> dict:
+    body: dict[str, Any] = {"source": source}
+    if kind is not None:
+        body["kind"] = kind
+    if voxel_mm is not None:
+        body["voxel_mm"] = float(voxel_mm)
+    if spacing_mm is not None:
+        body["spacing_mm"] = [float(x) for x in spacing_mm]
+    return body
+
+
+def _snapshot_name(name: str) -> str:
+    return name[len("snapshot:"):] if name.startswith("snapshot:") else name
+
+
+def _flag(value: bool) -> str:
+    return "true" if value else "false"
+
+
+def _jsonable(value: Any) -> Any:
+    """Tuples and numpy values as JSON types (a pose or axis may come as a numpy array)."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+__all__ = ["BurrRest", "RestError", "decode_bricks"]
