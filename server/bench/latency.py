@@ -130,8 +130,9 @@ class _Client:
         for i in range(n):
             if period_s is not None:
                 due += period_s
-                if due - time.perf_counter() > 0.0006:
-                    time.sleep(due - time.perf_counter() - 0.0004)
+                ahead = due - time.perf_counter()
+                if ahead > 0.0006:  # sleep most of it, spin the rest
+                    time.sleep(ahead - 0.0004)
                 while time.perf_counter() < due:
                     pass
             t0 = clock()
