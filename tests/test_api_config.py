@@ -44,3 +44,4 @@ def test_bad_settings_say_what_is_wrong(tmp_path, text, env, words):
 def test_a_missing_file_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="cannot read the config file"):
         load_config(tmp_path / "missing.toml")
+

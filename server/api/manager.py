@@ -23,7 +23,7 @@ import numpy as np
 
 from ...proto.tag import new_key
 from ..bone import Bone, Material, MaterialTable, ShaftParams
-from ..bone.grid import check_voxel_size
+from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError, save_bone
 from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
@@ -136,7 +136,6 @@ class ControlPlane:
         self._lock = threading.RLock()
         self._loads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="burrforce-load")
         self._file_counter = 0
-        self.latest_stats: dict | None = None
 
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, session_id: int | None, bone: BoneSource, params: Parameters,
@@ -310,7 +309,7 @@ class ControlPlane:
 
     def _check_bone(self, session: ManagedSession, bone: Bone) -> None:
         try:
-            check_voxel_size(bone.grid.spacing_mm, session.params.radius_mm)
+            check_burr(bone.grid.spacing_mm, session.params, session.shaft)
         except ValueError as exc:
             raise ApiError(422, str(exc)) from None
 
@@ -363,14 +362,12 @@ class ControlPlane:
                 ("placement_orientation", p.placement_orientation)) if v is not None})
         except (TypeError, ValueError) as exc:
             raise ApiError(422, str(exc)) from None
-        if shaft.length_mm > 0 and shaft.radius_mm >= params.radius_mm:
-            raise ApiError(422, f"the shaft radius {shaft.radius_mm} mm must be smaller than "
-                                f"the burr radius {params.radius_mm} mm")
-        if check_bone and session.ref is not None:
-            try:
-                check_voxel_size(np.array(session.ref.spacing_mm), params.radius_mm)
-            except ValueError as exc:
-                raise ApiError(422, str(exc)) from None
+        # The bone's voxels are checked once one is loaded (_check_bone for a new one).
+        spacing = session.ref.spacing_mm if check_bone and session.ref is not None else (0.0,)
+        try:
+            check_burr(spacing, params, shaft)
+        except ValueError as exc:
+            raise ApiError(422, str(exc)) from None
         materials = session.materials
         primary = session.primary_label
         if p.primary_material is not None:

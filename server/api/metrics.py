@@ -8,7 +8,6 @@ model-stage time from the ticks that happened since the last poll.
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -47,7 +46,7 @@ class LoopStats:
         self._lock = threading.Lock()
         self.latest: dict | None = None
         self.histograms: dict[int, TickHistogram] = {}
-        self._seen: dict[int, int] = {}
+        self._seen: dict[int, tuple[int, int]] = {}
         self.ticks_lost = 0
         self.poll_errors = 0
         self._stop = threading.Event()
@@ -64,16 +63,17 @@ class LoopStats:
                     del self.histograms[sid]
                     self._seen.pop(sid, None)
             for sid, s in stats["sessions"].items():
-                timed = int(s["ticks_timed"])
-                if timed < self._seen.get(sid, 0):  # a new session under the same id
+                epoch, timed = s["tick_epoch"], int(s["ticks_timed"])
+                seen_epoch, seen = self._seen.get(sid, (0, 0))
+                if epoch != seen_epoch:  # a new session under this id, or counters reset
                     self.histograms.pop(sid, None)
-                    self._seen[sid] = 0
+                    seen = 0
                 new = s.pop("new_tick_times_us", None)
                 hist = self.histograms.setdefault(sid, TickHistogram())
                 if new is not None:
                     hist.add(np.asarray(new))
-                    self.ticks_lost += max(0, timed - self._seen.get(sid, 0) - len(new))
-                self._seen[sid] = timed
+                    self.ticks_lost += max(0, timed - seen - len(new))
+                self._seen[sid] = (epoch, timed)
             self.latest = stats
         return stats
 
@@ -148,8 +148,3 @@ def registry(stats: LoopStats) -> CollectorRegistry:
     reg.register(stats)
     return reg
 
-
-def wait_for_first(stats: LoopStats, timeout_s: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while stats.latest is None and time.monotonic() < deadline:
-        time.sleep(0.02)

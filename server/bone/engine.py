@@ -61,6 +61,15 @@ class ShaftParams:
                                  f"got {value!r}")
 
 
+def check_burr(spacing_mm: np.ndarray, params: CuttingParams, shaft: ShaftParams) -> None:
+    """The burr must span several voxels, and a shaft that is checked must be thinner than
+    the burr. ValueError says which is wrong."""
+    check_voxel_size(np.asarray(spacing_mm, dtype=np.float64), params.radius_mm)
+    if shaft.length_mm > 0 and shaft.radius_mm >= params.radius_mm:
+        raise ValueError(f"the shaft radius {shaft.radius_mm} mm must be smaller than the burr "
+                         f"radius {params.radius_mm} mm")
+
+
 @dataclass(frozen=True)
 class ForbiddenContact:
     """The burr touched a forbidden structure (recorded when contact begins)."""
@@ -158,10 +167,7 @@ class BoneEngine:
 
     @params.setter
     def params(self, params: CuttingParams) -> None:
-        check_voxel_size(self.grid.spacing_mm, params.radius_mm)
-        if self.shaft.radius_mm >= params.radius_mm and self.shaft.length_mm > 0:
-            raise ValueError(f"shaft radius {self.shaft.radius_mm} mm must be smaller than the "
-                             f"burr radius {params.radius_mm} mm")
+        check_burr(self.grid.spacing_mm, params, self.shaft)
         self._params = params
         shape = coverage_cache_shape(params.radius_mm, self.grid.spacing_mm)
         if math.prod(shape) > MAX_CACHE_ENTRIES:

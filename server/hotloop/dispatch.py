@@ -140,20 +140,23 @@ class Dispatcher:
             return None
 
     def snapshot(self, lock: AbstractContextManager | None = None,
-                 tick_times_since: dict[int, int] | None = None) -> dict[str, object]:
+                 tick_times_since: dict[int, tuple[int, int]] | None = None
+                 ) -> dict[str, object]:
         """Counters and per-session statistics (plain data, picklable). Only the copying
         holds ``lock`` (the loop's): the quantiles are computed after it is released.
 
-        With ``tick_times_since`` (session id → a previous ``ticks_timed``; 0 for a session
-        not in it), each session also carries ``new_tick_times_us``: the model-stage times of
-        the ticks since then that are still kept (a metrics poller builds its histogram)."""
+        With ``tick_times_since`` (session id → a previous (``tick_epoch``, ``ticks_timed``)),
+        each session also carries ``new_tick_times_us``: the model-stage times of the ticks
+        since then that are still kept, or of all kept ticks for a session (or an epoch) the
+        caller has not seen (a metrics poller builds its histogram from them)."""
         with lock if lock is not None else nullcontext():
             counters = dict(self.counters)
             sessions = {sid: s.stats() for sid, s in self.sessions.items()}
         for sid, stats in sessions.items():
             times = stats.pop("tick_times_us")
             if tick_times_since is not None:
-                new = stats["ticks_timed"] - int(tick_times_since.get(sid, 0))
+                epoch, seen = tick_times_since.get(sid, (0, 0))
+                new = stats["ticks_timed"] - (seen if epoch == stats["tick_epoch"] else 0)
                 stats["new_tick_times_us"] = (times[-new:] if 0 < new <= len(times)
                                               else times if new > 0 else times[:0])
             stats["tick_p50_us"] = float(np.median(times)) if len(times) else None

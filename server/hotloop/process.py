@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bone import Bone, BoneEngine, MaterialTable, ShaftParams, load_bone, phantom
-from ..bone.grid import check_voxel_size
+from ..bone.engine import check_burr
 from ..bone.loaders import LoadOptions
 from ..bone.shared import SharedBone, SharedBoneRef
 from ..model.params import CuttingParams
@@ -298,18 +298,26 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
         stats.pop("tick_times_us")
         stats["events"] = [e.__dict__ for e in events]
         return stats
-    if command == "replace_session":
-        # A new bone: built and warmed outside the lock, swapped in between two packets.
+    if command in ("add_session", "replace_session"):
         spec = kwargs["spec"]
         if not isinstance(spec, SessionSpec):
             raise TypeError("spec must be a SessionSpec")
+        adding = command == "add_session"
+        with lock:
+            if adding and spec.session_id in dispatcher.sessions:
+                raise ValueError(f"session {spec.session_id} exists")
+        # Loading and warming are the slow part: on a dispatcher of its own, outside the lock;
+        # the session goes in (or replaces the old one) between two packets.
         session = build_session(spec)
         probe = Dispatcher()
         probe.add(session)
         probe.warm_up()
         with lock:
-            _session(dispatcher, spec.session_id)
-            dispatcher.sessions[spec.session_id] = session
+            if adding:
+                dispatcher.add(session)
+            else:
+                _session(dispatcher, spec.session_id)
+                dispatcher.sessions[spec.session_id] = session
         return bone_info(session)
     if command == "configure":
         config = kwargs["config"]
@@ -332,21 +340,6 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
             return None
         # Closing writes the last chunk: outside the lock, the loop goes on meanwhile.
         return recorder.close() if command == "stop_recording" else recorder.status()
-    if command == "add_session":
-        spec = kwargs["spec"]
-        if not isinstance(spec, SessionSpec):
-            raise TypeError("spec must be a SessionSpec")
-        with lock:
-            if spec.session_id in dispatcher.sessions:
-                raise ValueError(f"session {spec.session_id} exists")
-        # Loading and warming are the slow part: on a dispatcher of its own, outside the lock.
-        session = build_session(spec)
-        probe = Dispatcher()
-        probe.add(session)
-        probe.warm_up()
-        with lock:
-            dispatcher.add(session)
-        return bone_info(session)
     if command == "remove_session":
         with lock:
             return dispatcher.sessions.pop(kwargs["session_id"], None) is not None
@@ -388,10 +381,7 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
             raise RuntimeError("the session's bone changed meanwhile; try again")
         new_shaft = shaft if shaft is not None else engine.shaft
         new_params = params if params is not None else engine.params
-        if new_shaft.length_mm > 0 and new_shaft.radius_mm >= new_params.radius_mm:
-            raise ValueError(f"the shaft radius {new_shaft.radius_mm} mm must be smaller than "
-                             f"the burr radius {new_params.radius_mm} mm")
-        check_voxel_size(grid.spacing_mm, new_params.radius_mm)
+        check_burr(grid.spacing_mm, new_params, new_shaft)
         if new_shaft != engine.shaft:
             engine.shaft = new_shaft
         if new_params != engine.params:
@@ -406,34 +396,16 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
 def _start_recording(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
                      path: str, snapshot_version: int, bone_name: str = "",
                      max_bytes: int = 2 << 30) -> dict:
-    """Attach a recorder between two packets. The control plane has written the bone at
-    ``snapshot_version`` as the start snapshot; bricks carved since then are copied here, under
-    the lock, into the recording's start patch so the replay starts from the exact bone."""
-    from ..bone.bricks import BRICK
-    from ..record.format import PATCH_NAME, SNAPSHOT_NAME
-    from ..record.recorder import Recorder, session_meta
+    """Attach a recorder between two packets (``record.start_recording``). The control plane
+    has written the start snapshot at ``snapshot_version``; the bricks carved since then are
+    saved here, under the lock, as the recording's start patch."""
+    from ..record.recorder import start_recording
 
-    folder = Path(path)
     with lock:
         session = _session(dispatcher, session_id)
-        if session.recorder is not None:
-            raise ValueError(f"session {session_id} is already being recorded")
-        grid = session.engine.grid
-        bricks = np.argwhere(grid.brick_version > snapshot_version)
-        swept = np.zeros((len(bricks), BRICK, BRICK, BRICK), dtype=np.uint8)
-        for n, (bi, bj, bk) in enumerate(bricks.tolist()):
-            block = grid.swept[bi * BRICK:(bi + 1) * BRICK, bj * BRICK:(bj + 1) * BRICK,
-                               bk * BRICK:(bk + 1) * BRICK]
-            swept[n, :block.shape[0], :block.shape[1], :block.shape[2]] = block
-        version = grid.version
-        meta = session_meta(session, bone_name)
-        meta["start_patch"] = {"file": PATCH_NAME, "bricks": len(bricks),
-                               "from_version": int(snapshot_version), "to_version": version}
-        np.savez(folder / PATCH_NAME, bricks=bricks.astype(np.int32), swept=swept,
-                 version=np.int64(version))
-        recorder = Recorder.create(folder, meta, folder / SNAPSHOT_NAME, max_bytes=max_bytes)
-        recorder.attach(session)
-    return {"start_version": version, "patched_bricks": len(bricks)}
+        start_recording(session, path, bone_name=bone_name, max_bytes=max_bytes,
+                        snapshot_version=snapshot_version)
+        return {"start_version": session.engine.grid.version}
 
 
 def _send(conn: Connection, status: str, result: object) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -44,6 +45,7 @@ from ..model.vibration import VibrationParams
 ZERO3 = (0.0, 0.0, 0.0)
 #: Model-stage times kept per session for statistics (a ring buffer).
 TICK_TIMES_KEPT = 8192
+_TICK_EPOCHS = itertools.count(1)
 
 
 @dataclass(frozen=True)
@@ -129,6 +131,9 @@ class Session:
                          "internal": 0, "restarts": 0, "velocity_resets": 0, "teleports": 0}
         self.tick_ns = np.zeros(TICK_TIMES_KEPT, dtype=np.int64)
         self.ticks_timed = 0
+        #: Names this session's count of timed ticks: a new session under the same id, or
+        #: counters reset, start another (``Dispatcher.snapshot``'s ``tick_times_since``).
+        self.tick_epoch = next(_TICK_EPOCHS)
         self.last_force_N = 0.0
         #: The bone's shared-memory counters, kept while publishing is off.
         self._shared_header = engine.grid.shared_header
@@ -342,6 +347,7 @@ class Session:
         for name in self.counters:
             self.counters[name] = 0
         self.ticks_timed = 0
+        self.tick_epoch = next(_TICK_EPOCHS)
         self.last_force_N = 0.0
         self.restart_stream()
 
@@ -365,5 +371,6 @@ class Session:
             "forbidden_events": len(self.engine.events),
             "last_force_N": self.last_force_N,
             "ticks_timed": self.ticks_timed,
+            "tick_epoch": self.tick_epoch,
             "tick_times_us": self.tick_times_us(),
         }

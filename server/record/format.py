@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bone.bricks import BRICK
 from ..bone.shaft import N_SHAFT
 from ..model.kernels import N_OUT
 
@@ -298,3 +299,47 @@ def _read_chunk(path: Path, file: Path) -> tuple[np.ndarray, str | None]:
     if size - start > n * ROW_DTYPE.itemsize:
         return rows, f"{size - start - n * ROW_DTYPE.itemsize} bytes after the last row"
     return rows, None
+
+
+def write_start_patch(folder: Path, grid, since_version: int) -> tuple[int, int]:
+    """Save the bricks carved after ``since_version`` (their ``swept`` bytes, zero-padded to
+    8³) as ``folder/start-patch.npz``: the start snapshot was taken at ``since_version`` while
+    the loop kept cutting. Call it with the loop stopped between two ticks. Returns (bricks
+    saved, the bone version they bring the snapshot to)."""
+    bricks = np.argwhere(grid.brick_version > since_version)
+    swept = np.zeros((len(bricks), BRICK, BRICK, BRICK), dtype=np.uint8)
+    for n, (bi, bj, bk) in enumerate(bricks.tolist()):
+        block = grid.swept[bi * BRICK:(bi + 1) * BRICK, bj * BRICK:(bj + 1) * BRICK,
+                           bk * BRICK:(bk + 1) * BRICK]
+        swept[n, :block.shape[0], :block.shape[1], :block.shape[2]] = block
+    np.savez(Path(folder) / PATCH_NAME, bricks=bricks.astype(np.int32), swept=swept,
+             version=np.int64(grid.version))
+    return len(bricks), int(grid.version)
+
+
+def apply_start_patch(path: Path, grid) -> None:
+    """Bring the start snapshot to the bone the first recorded tick carved.
+
+    The server snapshots a session's bone while the loop keeps cutting, then starts the
+    recorder between two ticks; the bricks carved in between are saved as
+    ``start-patch.npz`` (brick indices, their ``swept`` bytes, 8³ each, and the version)."""
+    file = Path(path) / PATCH_NAME
+    if not file.is_file():
+        return
+    try:
+        with np.load(file) as z:
+            bricks, swept, version = z["bricks"], z["swept"], int(z["version"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise RecordingError(path, f"the start patch cannot be read: {exc}") from None
+    if bricks.ndim != 2 or bricks.shape[1:] != (3,) \
+            or swept.shape != (len(bricks), BRICK, BRICK, BRICK):
+        raise RecordingError(path, "the start patch has the wrong shape")
+    nx, ny, nz = grid.shape
+    for (bi, bj, bk), block in zip(bricks.tolist(), swept, strict=True):
+        i, j, k = bi * BRICK, bj * BRICK, bk * BRICK
+        if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
+            raise RecordingError(path, "the start patch does not fit the snapshot")
+        target = grid.swept[i:i + BRICK, j:j + BRICK, k:k + BRICK]
+        target[...] = block[:target.shape[0], :target.shape[1], :target.shape[2]]
+    grid.recount()
+    grid.version = version

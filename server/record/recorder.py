@@ -37,6 +37,7 @@ from .format import (
     FORMAT_VERSION,
     META_NAME,
     PART_SUFFIX,
+    PATCH_NAME,
     REC_CARVE_RESET,
     REQUIRED_META,
     ROW_DTYPE,
@@ -48,6 +49,7 @@ from .format import (
     json_float,
     recording_path,
     write_json,
+    write_start_patch,
 )
 
 if TYPE_CHECKING:
@@ -413,31 +415,45 @@ class Recorder:
 
 def start_recording(session: Session, path: str | Path, *, bone_name: str = "",
                     max_bytes: int = DEFAULT_MAX_BYTES,
-                    chunk_rows: int = DEFAULT_CHUNK_ROWS) -> Recorder:
-    """Snapshot ``session``'s bone, start a recording at ``path`` and attach it.
+                    chunk_rows: int = DEFAULT_CHUNK_ROWS,
+                    snapshot_version: int | None = None) -> Recorder:
+    """Start a recording of ``session`` at ``path`` and attach it.
 
-    Call it between ticks in the loop's thread: the snapshot (written here, compressed: a
-    large bone takes a while) must be the bone the first recorded tick carves.
+    Call it between ticks in the loop's thread. Without ``snapshot_version`` the bone is
+    snapshotted here (compressed: a large bone takes a while). With it, ``path`` already holds
+    the start snapshot, taken at that bone version while the loop kept cutting (the server's
+    control plane does so from shared memory); only the bricks carved since are saved here,
+    as the start patch the replay applies.
 
     Raises:
-        ValueError: ``path`` exists, or the session is already being recorded.
+        ValueError: ``path`` exists (without ``snapshot_version``), or the session is already
+            being recorded.
         OSError: the files cannot be written.
     """
     from ..bone.bone import Bone
     from ..bone.loaders import save_bone
 
     path = recording_path(path)
-    if path.exists():
-        raise ValueError(f"{path} already exists")
     if session.recorder is not None:
         raise ValueError(f"session {session.id} is already being recorded")
     engine = session.engine
+    meta = session_meta(session, bone_name)
+    if snapshot_version is not None:
+        patched, version = write_start_patch(path, engine.grid, snapshot_version)
+        meta["start_patch"] = {"file": PATCH_NAME, "bricks": patched,
+                               "from_version": int(snapshot_version), "to_version": version}
+        recorder = Recorder.create(path, meta, path / SNAPSHOT_NAME, max_bytes=max_bytes,
+                                   chunk_rows=chunk_rows)
+        recorder.attach(session)
+        return recorder
+    if path.exists():
+        raise ValueError(f"{path} already exists")
     path.mkdir(parents=True)
     try:
         snapshot = save_bone(Bone(engine.grid, engine.materials, name=bone_name,
                                   format="recording", kind="bone"), path / SNAPSHOT_NAME)
-        recorder = Recorder.create(path, session_meta(session, bone_name), snapshot,
-                                   max_bytes=max_bytes, chunk_rows=chunk_rows)
+        recorder = Recorder.create(path, meta, snapshot, max_bytes=max_bytes,
+                                   chunk_rows=chunk_rows)
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)
         raise

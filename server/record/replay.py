@@ -33,7 +33,13 @@ from ..bone.materials import Material, MaterialTable
 from ..bone.shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from ..model.kernels import N_OUT, OUT_CONTACT_AREA, OUT_COUNT, OUT_FORCE, OUT_POWER, OUT_TORQUE
 from ..model.params import CuttingParams
-from .format import PATCH_NAME, REC_CARVE_RESET, Recording, RecordingError, read_recording
+from .format import (
+    REC_CARVE_RESET,
+    Recording,
+    RecordingError,
+    apply_start_patch,
+    read_recording,
+)
 
 #: Status bits the bone stage sets (the others come from the pose and the velocity estimate,
 #: which a replay takes as recorded).
@@ -420,29 +426,3 @@ def _engine(rec: Recording, bone: Bone, table: MaterialTable,
         raise RecordingError(rec.path, f"meta.json cannot rebuild the engine: {exc}") from None
     return engine, tf
 
-
-def apply_start_patch(path: Path, grid) -> None:
-    """Bring the start snapshot to the bone the first recorded tick carved.
-
-    The server snapshots a session's bone while the loop keeps cutting, then starts the
-    recorder between two ticks; the bricks carved in between are saved as
-    ``start-patch.npz`` (brick indices, their ``swept`` bytes, 8³ each, and the version)."""
-    file = Path(path) / PATCH_NAME
-    if not file.is_file():
-        return
-    try:
-        with np.load(file) as z:
-            bricks, swept, version = z["bricks"], z["swept"], int(z["version"])
-    except (OSError, ValueError, KeyError) as exc:
-        raise RecordingError(path, f"the start patch cannot be read: {exc}") from None
-    if bricks.ndim != 2 or bricks.shape[1:] != (3,) or swept.shape != (len(bricks), 8, 8, 8):
-        raise RecordingError(path, "the start patch has the wrong shape")
-    nx, ny, nz = grid.shape
-    for (bi, bj, bk), block in zip(bricks.tolist(), swept, strict=True):
-        i, j, k = bi * 8, bj * 8, bk * 8
-        if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
-            raise RecordingError(path, "the start patch does not fit the snapshot")
-        target = grid.swept[i:i + 8, j:j + 8, k:k + 8]
-        target[...] = block[:target.shape[0], :target.shape[1], :target.shape[2]]
-    grid.recount()
-    grid.version = version
