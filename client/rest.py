@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import httpx
-import msgpack
 import numpy as np
 
+from ..proto.bricks import decode_delta
 from . import connection
 
 API_PREFIX = "/v1"
@@ -37,9 +37,6 @@ LOAD_TIMEOUT_S = 600.0
 #: Download and upload chunk size, bytes.
 CHUNK_BYTES = 1 << 20
 #: The brick-delta message this client reads (``burrforce.server.bone.deltas``).
-DELTA_FORMAT = "burrforce-bricks"
-DELTA_FORMAT_VERSION = 1
-BRICK = 8
 
 VolumeFormat = Literal["nrrd", "npy"]
 VolumeWhat = Literal["remaining", "labels", "swept", "density"]
@@ -392,7 +389,7 @@ class BurrRest:
         response = self._send("GET", f"{API_PREFIX}/sessions/{int(session_id)}/deltas",
                               params={"since": int(since), "max_bricks": int(max_bricks)})
         try:
-            return decode_bricks(response.content)
+            return decode_delta(response.content)
         except ValueError as exc:
             raise RestError(0, str(exc), method="GET", url=str(response.request.url)) from None
 
@@ -475,37 +472,6 @@ class BurrRest:
         return self._json("GET", "/recordings")
 
 
-def decode_bricks(data: bytes) -> dict:
-    """A brick-delta message (msgpack, format ``burrforce-bricks`` 1) as a dict whose
-    ``bricks`` is int32 (count, 3) and ``remaining`` uint8 (count, 8, 8, 8).
-
-    Raises:
-        ValueError: not msgpack, another format or version, or arrays that disagree with
-            ``count``.
-    """
-    try:
-        d = msgpack.unpackb(data, raw=False)
-    except (ValueError, TypeError, msgpack.UnpackException) as exc:
-        raise ValueError(f"not a msgpack brick delta: {exc}") from None
-    if not isinstance(d, dict) or d.get("format") != DELTA_FORMAT:
-        raise ValueError(f"not a {DELTA_FORMAT} message")
-    if d.get("format_version") != DELTA_FORMAT_VERSION:
-        raise ValueError(f"{DELTA_FORMAT} format_version {d.get('format_version')!r} is not "
-                         f"supported (this client reads {DELTA_FORMAT_VERSION})")
-    count, bricks, remaining = d.get("count"), d.get("bricks"), d.get("remaining")
-    voxels = BRICK ** 3
-    if isinstance(count, bool) or not isinstance(count, int) or count < 0 \
-            or not isinstance(bricks, bytes) or not isinstance(remaining, bytes) \
-            or len(bricks) != 12 * count or len(remaining) != voxels * count \
-            or d.get("brick") != BRICK:
-        raise ValueError(f"malformed {DELTA_FORMAT} message: count, brick, bricks and "
-                         "remaining disagree")
-    d["bricks"] = np.frombuffer(bricks, dtype="<i4").reshape(count, 3).astype(np.int32)
-    d["remaining"] = np.frombuffer(remaining, dtype=np.uint8).reshape(
-        count, BRICK, BRICK, BRICK).copy()
-    return d
-
-
 def _bone_request(source: str, kind: str | None, voxel_mm: float | None,
                   spacing_mm: Sequence[float] | None) -> dict:
     body: dict[str, Any] = {"source": source}
@@ -539,4 +505,4 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-__all__ = ["BurrRest", "RestError", "decode_bricks"]
+__all__ = ["BurrRest", "RestError"]

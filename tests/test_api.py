@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from burrforce.client import BurrClient
+from burrforce.proto.bricks import decode_delta
 from burrforce.proto.messages import FLAG_NEW_STREAM, STATUS_CUTTING, UNKNOWN_SESSION
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.stack import ServerStack
 from burrforce.server.bone import LoadOptions, load_bone, phantom, save_bone
-from burrforce.server.bone.deltas import decode_delta
 from burrforce.server.record import replay
 
 TOKEN = "test-token-0123456789abcdef"

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from burrforce.proto.bricks import FORMAT, decode_delta, encode_delta
 from burrforce.server.bench.accuracy import oblique_rotation
 from burrforce.server.bone import (
     BoneEngine,
@@ -25,14 +26,7 @@ from burrforce.server.bone import (
     workpiece_block,
 )
 from burrforce.server.bone import export as export_module
-from burrforce.server.bone.deltas import (
-    FORMAT,
-    apply_delta,
-    brick_delta,
-    brick_remaining,
-    decode_delta,
-    encode_delta,
-)
+from burrforce.server.bone.deltas import apply_delta, brick_delta, brick_remaining
 from burrforce.server.bone.export import VOLUME_MEDIA_TYPES, write_volume
 from burrforce.server.bone.mesh import (
     MESH_FORMATS,

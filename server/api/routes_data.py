@@ -14,8 +14,9 @@ from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import FileResponse
 from starlette.background import BackgroundTask
 
+from ...proto.bricks import encode_delta
 from ..bone import PHANTOMS
-from ..bone.deltas import MAX_BRICKS_LIMIT, brick_delta, encode_delta
+from ..bone.deltas import MAX_BRICKS_LIMIT, brick_delta
 from ..bone.export import VOLUME_MEDIA_TYPES, write_volume
 from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM

@@ -19,8 +19,8 @@ so the original file plus ``brick_delta(grid, 0)`` reproduces the current bone.
 
 The message
 -----------
-One msgpack map (:func:`encode_delta`) with string keys; numbers are msgpack ints, float64
-and booleans, byte strings are msgpack ``bin``:
+One msgpack map (``burrforce.proto.bricks.encode_delta``) with string keys; numbers are
+msgpack ints, float64 and booleans, byte strings are msgpack ``bin``:
 
 =================  ============  ==========================================================
 key                type          meaning
@@ -86,18 +86,16 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgpack
 import numpy as np
 
+from ...proto.bricks import BRICK_VOXELS, FORMAT, FORMAT_VERSION
 from .bricks import BRICK
 from .export import remaining_of
 from .grid import BoneGrid
 
-FORMAT = "burrforce-bricks"
-FORMAT_VERSION = 1
 #: The largest ``max_bricks`` accepted: 65 536 bricks are a 32 MB message.
 MAX_BRICKS_LIMIT = 1 << 16
-BRICK_VOXELS = BRICK ** 3
+assert BRICK ** 3 == BRICK_VOXELS, "the wire format's brick is the grid's brick"
 
 
 def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> dict[str, Any]:
@@ -119,7 +117,7 @@ def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> d
     dict
         The fields of the module's format table. ``bricks`` (12·count bytes, int32 LE) and
         ``remaining`` (512·count bytes, uint8) are ``bytes``; everything else is a Python
-        int, float, bool, str, None or list, ready for :func:`encode_delta` or JSON.
+        int, float, bool, str, None or list, ready for ``proto.bricks.encode_delta`` or JSON.
 
     Raises
     ------
@@ -205,49 +203,6 @@ def brick_remaining(grid: BoneGrid, index: np.ndarray) -> np.ndarray:
     return out
 
 
-def encode_delta(d: dict[str, Any]) -> bytes:
-    """``d`` (from :func:`brick_delta`, or decoded) as one msgpack message; ``bricks`` and
-    ``remaining`` go as ``bin`` (numpy arrays are converted to the wire's byte layout)."""
-    out = dict(d)
-    if isinstance(out.get("bricks"), np.ndarray):
-        out["bricks"] = np.asarray(out["bricks"]).astype("<i4").tobytes()
-    if isinstance(out.get("remaining"), np.ndarray):
-        out["remaining"] = np.asarray(out["remaining"]).astype(np.uint8).tobytes()
-    return msgpack.packb(out, use_bin_type=True)
-
-
-def decode_delta(b: bytes) -> dict[str, Any]:
-    """A message from :func:`encode_delta` → a dict whose ``bricks`` is int32 (count, 3) and
-    ``remaining`` uint8 (count, 8, 8, 8) (writable numpy arrays).
-
-    Raises
-    ------
-    ValueError
-        Not msgpack, not this format or version, or arrays that disagree with ``count``.
-    """
-    try:
-        d = msgpack.unpackb(b, raw=False)
-    except (ValueError, TypeError, msgpack.UnpackException) as exc:
-        raise ValueError(f"not a msgpack brick delta: {exc}") from None
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
-        raise ValueError(f"not a {FORMAT} message")
-    if d.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{FORMAT} format_version {d.get('format_version')!r} is not "
-                         f"supported (this reader knows {FORMAT_VERSION})")
-    count = d.get("count")
-    bricks, remaining = d.get("bricks"), d.get("remaining")
-    if isinstance(count, bool) or not isinstance(count, int) or count < 0 \
-            or not isinstance(bricks, bytes) or not isinstance(remaining, bytes) \
-            or len(bricks) != 12 * count or len(remaining) != BRICK_VOXELS * count \
-            or d.get("brick") != BRICK:
-        raise ValueError(f"malformed {FORMAT} message: count, brick, bricks and remaining "
-                         "disagree")
-    d["bricks"] = np.frombuffer(bricks, dtype="<i4").reshape(count, 3).astype(np.int32)
-    d["remaining"] = np.frombuffer(remaining, dtype=np.uint8).reshape(
-        count, BRICK, BRICK, BRICK).copy()
-    return d
-
-
 def apply_delta(volume: np.ndarray, d: dict[str, Any]) -> int | None:
     """Write a decoded delta's bricks into a client's copy of the remaining density.
 
@@ -256,7 +211,7 @@ def apply_delta(volume: np.ndarray, d: dict[str, Any]) -> int | None:
     volume : np.ndarray
         uint8 (nx, ny, nz) remaining density, C-contiguous, updated in place.
     d : dict
-        From :func:`decode_delta` (or :func:`brick_delta`: byte fields are accepted too).
+        From ``proto.bricks.decode_delta`` (or :func:`brick_delta`: byte fields are accepted too).
 
     Returns
     -------
