@@ -113,6 +113,7 @@ def resolve_token(config: ServeConfig) -> tuple[str, bool]:
 
 def main(args: argparse.Namespace) -> int:
     from .api.models import Parameters
+    from .api.sources import file_source
     from .api.stack import ServerStack
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
@@ -143,7 +144,9 @@ def main(args: argparse.Namespace) -> int:
         elif bone.startswith(("library:", "upload:", "snapshot:")):
             source = plane.resolve(bone, args.kind)
         else:
-            source = _file_source(str(Path(bone).expanduser().resolve()), args.kind)
+            # The command line is the operator's own: any readable file, not only the library.
+            path = Path(bone).expanduser().resolve()
+            source = file_source(f"file:{path}", path, args.kind)
         session = stack.add_session(source, Parameters(frame=config.frame),
                                     session_id=config.session_id, key_hex=key_hex,
                                     authenticated=not config.no_auth)
@@ -189,19 +192,6 @@ def main(args: argparse.Namespace) -> int:
 
 def _ignore(signum: int, frame: object) -> None:
     pass
-
-
-def _file_source(path: str, kind: str | None):
-    """A --bone file given on the command line: any path the user can read (REST sources are
-    confined to the library; the command line is the operator's own)."""
-    from .api.sources import SELF_DESCRIBING, BoneSource
-    from .bone.loaders import detect_format
-
-    fmt = detect_format(path)
-    if kind is None and fmt not in SELF_DESCRIBING:
-        raise ValueError(f"{path} is a {fmt} file whose voxels could be CT numbers, labels "
-                         "or densities: say which with --kind ct|labels|density")
-    return BoneSource(f"file:{path}", Path(path), kind)
 
 
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,

@@ -63,6 +63,8 @@ class Job:
     total: int = 0
     created_s: float = field(default_factory=time.time)
     finished_s: float | None = None
+    #: Set when the job is done or failed.
+    finished: threading.Event = field(default_factory=threading.Event, repr=False)
 
     def public(self) -> dict:
         return {"id": self.id, "kind": self.kind, "session": self.session_id,
@@ -162,6 +164,11 @@ class ControlPlane:
             self.sessions[session_id] = base
             job = self._submit(base, "create", bone)
         return base, job
+
+    @staticmethod
+    def wait(job: Job, timeout_s: float = 600.0) -> bool:
+        """Wait until ``job`` is done or failed (True) or ``timeout_s`` passes (False)."""
+        return job.finished.wait(timeout_s)
 
     def get(self, session_id: int) -> ManagedSession:
         with self._lock:
@@ -298,6 +305,7 @@ class ControlPlane:
             self._fail(session, job, f"{type(exc).__name__}: {exc}")
         finally:
             job.finished_s = time.time()
+            job.finished.set()
 
     def _fail(self, session: ManagedSession, job: Job, message: str) -> None:
         job.state, job.error = "failed", message

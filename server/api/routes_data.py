@@ -22,6 +22,7 @@ from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
 from .manager import ApiError, ControlPlane
 from .models import RecordingStart, RestoreRequest, SnapshotRequest
+from .routes_sessions import wait_for
 from .sources import snapshot_path
 
 router = APIRouter()
@@ -172,8 +173,7 @@ def deltas(request: Request, session_id: int = SessionPath,
     reader = session.reader
     assert reader is not None
     try:
-        d = reader.read_consistently(lambda grid: brick_delta(grid, since, max_bricks),
-                                     exact=False)
+        d = reader.read_published(lambda grid: brick_delta(grid, since, max_bricks))
     except ValueError as exc:
         raise ApiError(422, str(exc)) from None
     except TimeoutError as exc:
@@ -213,9 +213,7 @@ def restore(body: RestoreRequest, request: Request, session_id: int = SessionPat
     plane = _plane(request)
     source = plane.resolve(f"snapshot:{body.snapshot}")
     job = plane.load_bone(session_id, source, "restore")
-    from .routes_sessions import _wait
-
-    _wait(plane, plane.get(session_id), job.id, wait)
+    wait_for(plane, job.id, wait)
     return plane.jobs[job.id].public()
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -22,6 +21,11 @@ router = APIRouter(tags=["sessions"])
 SessionPath = Path(ge=0, le=(1 << 32) - 1, description="session id")
 #: How long ``?wait=true`` waits for a bone to load, s.
 WAIT_LIMIT_S = 600.0
+
+
+def wait_for(plane: ControlPlane, job_id: str, wait: bool) -> None:
+    if wait:
+        plane.wait(plane.jobs[job_id], WAIT_LIMIT_S)
 
 
 def _plane(request: Request) -> ControlPlane:
@@ -71,14 +75,6 @@ def parameters_view(s: ManagedSession) -> dict:
     }
 
 
-def _wait(plane: ControlPlane, session: ManagedSession, job_id: str, wait: bool) -> None:
-    if not wait:
-        return
-    deadline = time.monotonic() + WAIT_LIMIT_S
-    while plane.jobs[job_id].state in ("queued", "running") and time.monotonic() < deadline:
-        time.sleep(0.02)
-
-
 @router.post("/sessions", status_code=201)
 def create_session(body: SessionCreate, request: Request, response: Response,
                    wait: bool = Query(True, description="answer when the bone is loaded "
@@ -92,7 +88,7 @@ def create_session(body: SessionCreate, request: Request, response: Response,
     source = plane.resolve(b.source, b.kind, b.voxel_mm, b.spacing_mm)
     session, job = plane.create_session(body.id, source, body.parameters, body.features,
                                         body.authenticated)
-    _wait(plane, session, job.id, wait)
+    wait_for(plane, job.id, wait)
     if session.state == "failed":
         plane.delete_session(session.id)
         raise ApiError(422, f"the bone could not be loaded: {session.error}")
@@ -130,7 +126,7 @@ def reset_session(request: Request, session_id: int = SessionPath,
     new stream."""
     plane = _plane(request)
     job = plane.reset(session_id)
-    _wait(plane, plane.get(session_id), job.id, wait)
+    wait_for(plane, job.id, wait)
     return plane.jobs[job.id].public()
 
 
@@ -148,7 +144,7 @@ def load_bone(body: BoneRequest, request: Request, session_id: int = SessionPath
     plane = _plane(request)
     source = plane.resolve(body.source, body.kind, body.voxel_mm, body.spacing_mm)
     job = plane.load_bone(session_id, source)
-    _wait(plane, plane.get(session_id), job.id, wait)
+    wait_for(plane, job.id, wait)
     return plane.jobs[job.id].public()
 
 

@@ -116,6 +116,13 @@ def resolve(source: str, roots: SourceRoots, kind: str | None = None,
     else:
         raise SourceError(f"unknown bone source scheme {scheme!r}: phantom, library, upload "
                           "or snapshot")
+    return file_source(source, path, kind, spacing_mm)
+
+
+def file_source(source: str, path: Path, kind: str | None = None,
+                spacing_mm: tuple[float, float, float] | None = None) -> BoneSource:
+    """A bone file or series folder as a source, once its format says what its voxels are or
+    ``kind`` does. Raises SourceError (404 for a missing file)."""
     try:
         fmt = detect_format(path)
     except BoneFileError as exc:

@@ -66,11 +66,8 @@ class ServerStack:
         session, job = self.plane.create_session(
             session_id, source, parameters or Parameters(), features or Features(),
             authenticated=authenticated, key_hex=key_hex)
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while self.plane.jobs[job.id].state in ("queued", "running"):
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"loading {source.source} took too long")
-            time.sleep(0.02)
+        if not self.plane.wait(job, START_TIMEOUT_S):
+            raise TimeoutError(f"loading {source.source} took too long")
         if session.state != "ready":
             raise ValueError(f"cannot load {source.source}: {session.error}")
         return session

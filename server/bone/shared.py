@@ -21,6 +21,7 @@ import mmap
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -174,6 +175,7 @@ class SharedBone:
                                            b_off).reshape(bshape)
         self.writable = writable
         self._view: BoneGrid | None = None
+        self._view_lock = threading.Lock()
 
     @property
     def version(self) -> int:
@@ -232,36 +234,28 @@ class SharedBone:
                 out[sl] = self.swept[sl]
         return out, version
 
-    def read_consistently(self, read: Callable[[BoneGrid], T], timeout_s: float = 5.0,
-                          attempts: int = 50, exact: bool = True) -> T:
-        """``read(view)`` on a read-only grid over the mapped voxels, run again until it falls
-        between two carving ticks (for small reads: a brick delta, a few voxels). The view's
-        ``version`` is the version the result is exact for.
+    def read_published(self, read: Callable[[BoneGrid], T], timeout_s: float = 5.0) -> T:
+        """``read(view)`` on a read-only grid over the mapped voxels whose ``version`` is the
+        version published when the read began (between two carving ticks).
 
-        ``exact=False`` runs ``read`` once, with the version published before it: for readers
-        that tolerate later changes (a brick delta sends a brick caught mid-change again next
-        time, since its stamp is then newer than that version).
+        For readers that tolerate later changes: a brick delta sends a brick caught mid-change
+        again next time, since its stamp is then newer than that version. Reads through one
+        handle run one at a time (they share the view).
 
         Raises:
-            TimeoutError: every attempt overlapped a carving tick.
+            TimeoutError: the loop kept a carving tick open for ``timeout_s``.
         """
-        if self._view is None:
-            ref = self.ref
-            view = BoneGrid(self.density, ref.spacing_mm, origin_mm=ref.origin_mm,
-                            direction=np.array(ref.direction), labels=self.labels,
-                            swept=self.swept)
-            view.brick_version = self.brick_version
-            self._view = view
-        deadline = time.monotonic() + timeout_s
-        for _ in range(attempts):
-            seq = self._even(deadline)
+        with self._view_lock:
+            if self._view is None:
+                ref = self.ref
+                view = BoneGrid(self.density, ref.spacing_mm, origin_mm=ref.origin_mm,
+                                direction=np.array(ref.direction), labels=self.labels,
+                                swept=self.swept)
+                view.brick_version = self.brick_version
+                self._view = view
+            self._even(time.monotonic() + timeout_s)
             self._view.version = int(self.header[H_VERSION])
-            result = read(self._view)
-            if int(self.header[H_SEQ]) == seq or not exact:
-                return result
-            if time.monotonic() > deadline:
-                break
-        raise TimeoutError("the bone changed during every read; try again")
+            return read(self._view)
 
     def snapshot(self, timeout_s: float = 5.0) -> Bone:
         """A private, consistent copy of the bone as it is now (the loop keeps running)."""
