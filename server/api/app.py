@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hmac
+import time
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -66,6 +67,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
         latest = stats.latest
         return {"status": "ok" if alive else "hot loop down", "hot_loop": alive,
                 "version": __version__,
+                "uptime_s": round(time.time() - plane.started_s, 1),
                 "sessions": len(plane.sessions),
                 "udp": {"host": plane.hot.address[0], "port": plane.hot.address[1]}
                 if plane.hot.address else None,

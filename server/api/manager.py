@@ -160,7 +160,7 @@ class ControlPlane:
             if key_hex is None and authenticated:
                 key_hex = new_key().hex()
             base.id = session_id
-            base.key_hex = key_hex if authenticated or key_hex else None
+            base.key_hex = key_hex if authenticated else None
             self.sessions[session_id] = base
             job = self._submit(base, "create", bone)
         return base, job
@@ -285,6 +285,8 @@ class ControlPlane:
                     raise
                 # Both processes map it now: the name can go, so no crash leaves it behind.
                 Path(ref.path).unlink(missing_ok=True)
+                session.sent = {"params": spec.params, "shaft": spec.shaft,
+                                "config": spec.config, "publish": spec.publish}
                 old = (session.reader, session.ref)
                 session.in_loop = True
                 session.ref, session.reader = ref, reader
@@ -324,9 +326,6 @@ class ControlPlane:
     def _spec(self, session: ManagedSession, ref: SharedBoneRef,
               materials: MaterialTable) -> SessionSpec:
         key = bytes.fromhex(session.key_hex) if session.key_hex else None
-        session.sent = {"params": session.params, "shaft": session.effective_shaft(),
-                        "config": session.effective_config(),
-                        "publish": session.features.deltas}
         return SessionSpec(session.id, ref, None, key, session.effective_config(),
                            session.params, session.effective_shaft(),
                            materials=materials, publish=session.features.deltas)

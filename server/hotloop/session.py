@@ -166,7 +166,7 @@ class Session:
         self._model = config.model
         self._carve = config.carve
         self._vibration = config.vibration
-        self._min_cutting_rpm = self.engine.params.min_cutting_rpm
+        self.engine_changed()
         if geometry_changed:
             self.restart_stream()
 
