@@ -348,6 +348,6 @@ def main(args: argparse.Namespace) -> int:
             "ticks")
     if args.plot is not None:
         say(f"plot written to {result['plot']}")
-    say("the groove stays cut: run again with another --y-mm for fresh bone (or restart "
-        "the server)")
+    say(f"the groove stays cut: run again with another --y-mm for fresh bone (or reset the "
+        f"bone: POST /v1/sessions/{session}/reset)")
     return 0

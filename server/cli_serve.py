@@ -208,7 +208,10 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     else:
         say(f"  token in {Path(config.data_dir).expanduser() / TOKEN_FILE}")
     say(f"  connection file {conn_path}")
+    token_hint = ("TOKEN=<the configured token>" if config.token else
+                  f"TOKEN=$(cat {Path(config.data_dir).expanduser() / TOKEN_FILE})")
     say("try:  burrforce client demo          (cuts a groove and prints the forces)")
+    say(f"      {token_hint}")
     say(f"      curl -H \"Authorization: Bearer $TOKEN\" -X PATCH -H 'Content-Type: "
         f"application/json' -d '{{\"us_n_mm2\": 1610}}' {url}/v1/sessions/{c.session}/"
         "parameters")
