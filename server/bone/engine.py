@@ -16,7 +16,14 @@ from ..model.cutting import (
     check_pose,
     result_from_out,
 )
-from ..model.kernels import OUT_FORCE, OUT_SURFACE_NORMAL, OUT_TORQUE, new_buffer
+from ..model.kernels import (
+    ACC_JACOBIAN,
+    OUT_FORCE,
+    OUT_SURFACE_NORMAL,
+    OUT_TORQUE,
+    new_buffer,
+    new_scratch,
+)
 from ..model.params import CuttingParams
 from .bricks import forbidden_bricks
 from .carve import N_TOUCH, TOUCH_FORBIDDEN
@@ -146,8 +153,11 @@ class BoneEngine:
         self.params = params if params is not None else CuttingParams()
         self.burr = BurrGrid.build(n_theta, n_phi, refine)
         self._vert = np.empty((self.burr.n_theta + 1, self.burr.n_phi, 3))
-        self._acc = new_buffer()
+        self._acc = new_scratch()
         self.out = new_buffer()
+        #: ∂F/∂v_f of the last tick's cut, float64 (9,) row-major, grid frame, N·s/mm: the
+        #: force is exactly ``jacobian @ feed`` over the elements that cut (a view).
+        self.jacobian = self._acc[ACC_JACOBIAN:ACC_JACOBIAN + 9]
         self.shaft_out = np.zeros(N_SHAFT)
         self.touch = np.zeros(N_TOUCH)
         self._touched = np.zeros((N_LABELS, 4))

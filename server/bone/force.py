@@ -15,7 +15,7 @@ import math
 
 from numba import njit
 
-from ..model.kernels import N_OUT, accumulate_forces, finish, tool_basis
+from ..model.kernels import N_ACC, N_OUT, accumulate_forces, finish, tool_basis
 from .voxels import cache_origin, sample_bone, sphere_reach
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
@@ -39,11 +39,12 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
         density, swept, labels: uint8 voxels; us_tab, usk_tab: (256,) Us and Us·K per label.
         brick_bone: int32 brick counts.  spacing: (3,) voxel size, mm.
         vert: float64 scratch of shape (n_theta + 1, n_phi, 3) (corner samples).
-        acc: (N_OUT,) scratch; out: (N_OUT,) result (``model.kernels.OUT_*``, grid frame).
+        acc: (N_ACC,) scratch; out: (N_OUT,) result (``model.kernels.OUT_*``, grid frame).
         cache, tick: the tick's coverage cache (``voxels.cached_coverage``).
     """
-    for n in range(N_OUT):
+    for n in range(N_ACC):
         acc[n] = 0.0
+    for n in range(N_OUT):
         out[n] = 0.0
     hx = spacing[0]
     hy = spacing[1]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from numba import njit
 
-from ..model.kernels import N_OUT
+from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE, carve_sphere
 from .force import cut_voxels
 from .shaft import N_SHAFT, shaft_contact
@@ -47,6 +47,8 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     else:
         for n in range(N_OUT):
             out[n] = 0.0
+        for n in range(N_ACC):
+            acc[n] = 0.0
     if shaft_length > 0.0:
         shaft_contact(density, swept, brick_bone, spacing, centre, axis, radius,
                       shaft_radius, shaft_length, shaft_stiffness, shaft_out)

@@ -19,6 +19,7 @@ from ...proto.messages import (
     FLAG_RESET_VELOCITY,
     OK,
     STALE,
+    STATUS_CLAMPED,
     STATUS_CONTACT,
     STATUS_CUTTING,
     STATUS_FORBIDDEN,
@@ -32,6 +33,11 @@ from ...proto.tag import Tagger
 from ..bone.carve import TOUCH_FORBIDDEN
 from ..bone.engine import BoneEngine
 from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
+from ..haptics.config import HapticsConfig
+from ..haptics.coupling import CLAMPED, PLACED, coupled_finish, coupled_predict, raw_limits
+from ..haptics.layout import S_PERIOD
+from ..haptics.stage import HapticStage
+from ..haptics.velocity import velocity_step
 from ..model.kernels import (
     OUT_COMPONENTS,
     OUT_CONTACT_AREA,
@@ -68,6 +74,7 @@ class SessionConfig:
             the protocol alone (what ``bench latency`` calls the overhead).
         carve: remove bone (off: forces from the bone as it is).
         vibration: vibration parameters, or None for no vibration.
+        haptics: the output (raw or coupled) and the device it is for (``HapticsConfig``).
     """
 
     frame: str = frames.DEFAULT_FRAME
@@ -80,6 +87,7 @@ class SessionConfig:
     model: bool = True
     carve: bool = True
     vibration: VibrationParams | None = field(default_factory=VibrationParams)
+    haptics: HapticsConfig = field(default_factory=HapticsConfig)
 
     def __post_init__(self) -> None:
         frames.frame(self.frame)
@@ -166,6 +174,13 @@ class Session:
         self._model = config.model
         self._carve = config.carve
         self._vibration = config.vibration
+        if old is None or (old.haptics, old.max_speed_mm_s) != (config.haptics,
+                                                               config.max_speed_mm_s):
+            self.haptics = HapticStage(config.haptics, grid.spacing_mm, config.max_speed_mm_s)
+        #: The stage runs for the coupled output, or to hold the raw output to a device's
+        #: limits; a raw session without a device skips it.
+        self._coupled = self.haptics.coupled
+        self._limited = self.haptics.limited
         self.engine_changed()
         if geometry_changed:
             self.restart_stream()
@@ -182,6 +197,7 @@ class Session:
         """After the engine's parameters changed: pick up what the hot path caches (the
         stream goes on; only the carve memory is reset by the engine)."""
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
+        self._radius_mm = self.engine.params.radius_mm
 
     def restart_stream(self) -> None:
         """Forget the sequence and velocity state: the next packet starts a new stream."""
@@ -189,9 +205,14 @@ class Session:
         self.last_accept_ns = 0
         self._last_t_client_us = -1
         self._prev_t_us: int | None = None
-        self._prev_p = ZERO3
+        self._t0_us = 0
         self._vel = ZERO3
         self._vel_stale = True
+        #: The client time of the last tick (the haptic stage's step), None before one.
+        self._tick_t_us: int | None = None
+        #: The tool jumped (a teleport or FLAG_RESET_VELOCITY): the proxy follows it.
+        self._jumped = True
+        self.haptics.restart()
         self.engine.forget_last_carve()
 
     # -- the hot path -----------------------------------------------------------------------
@@ -227,6 +248,7 @@ class Session:
         if check_pose_values(pose) is not None:
             self.counters["bad_value"] += 1
             self._prev_t_us = None  # no velocity across an unusable pose
+            self.haptics.device_released()  # an error reply carries zero force
             return self.error_reply(pose, BAD_VALUE, t_recv_ns), BAD_VALUE
         return encode_reply_values(self._tick(pose, t_recv_ns), self.tagger), OK
 
@@ -239,32 +261,44 @@ class Session:
 
     def _velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
         """(velocity in the grid frame, mm/s; stale): the client's own if it sent one, else
-        from the client's timestamps; either way reset when implausibly fast."""
+        estimated from the positions at the client's timestamps (adaptive windowing, robust
+        to jitter and encoder quantization: ``haptics.velocity``); either way reset when
+        implausibly fast."""
         if pose.velocity is not None:
             v = self.transform.vector_in(pose.velocity)
         else:
             prev_t = self._prev_t_us
             if prev_t is None or pose.flags & FLAG_RESET_VELOCITY:
+                self._jumped = prev_t is not None
                 return self._reset_velocity(pose, p)
             dt_us = pose.t_client_us - prev_t
             if dt_us == 0:  # a coarse client clock: keep the estimate, measure over two
                 return self._vel, self._vel_stale
             if dt_us < 0 or dt_us > self._gap_us:
                 return self._reset_velocity(pose, p)
-            q = self._prev_p
-            k = 1e6 / dt_us
-            v = ((p[0] - q[0]) * k, (p[1] - q[1]) * k, (p[2] - q[2]) * k)
+            h = self.haptics
+            out = h.device_v
+            velocity_step(h.ring_t, h.ring_p, h.ring_state,
+                          (pose.t_client_us - self._t0_us) * 1e-6, p[0], p[1], p[2],
+                          h.noise_mm, h.window_s, out)
+            v = (out[0], out[1], out[2])
         if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > self._max_speed2:
             self.counters["teleports"] += 1
             self.engine.forget_last_carve()
+            self._jumped = True
             return self._reset_velocity(pose, p)
-        self._prev_t_us, self._prev_p, self._vel, self._vel_stale = pose.t_client_us, p, v, False
+        self._prev_t_us, self._vel, self._vel_stale = pose.t_client_us, v, False
         return v, False
 
     def _reset_velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
         self.counters["velocity_resets"] += 1
-        self._prev_t_us, self._prev_p, self._vel, self._vel_stale = (
-            pose.t_client_us, p, ZERO3, True)
+        h = self.haptics
+        h.forget_velocity()
+        # The window's times count from here: small numbers keep full precision.
+        self._t0_us = pose.t_client_us
+        velocity_step(h.ring_t, h.ring_p, h.ring_state, 0.0, p[0], p[1], p[2], h.noise_mm,
+                      h.window_s, h.device_v)
+        self._prev_t_us, self._vel, self._vel_stale = pose.t_client_us, ZERO3, True
         return ZERO3, True
 
     def _tick(self, pose: Pose, t_recv_ns: int) -> tuple:
@@ -288,14 +322,35 @@ class Session:
         if spindle_on and 0.0 < abs(rpm) < self._min_cutting_rpm:
             status |= STATUS_SLOW_SPINDLE
         removed_mm3 = 0.0
-        force = resistive = torque = ZERO3
-        power_w = cut_n = 0.0
+        force = resistive = torque = proxy_p = proxy_v = ZERO3
+        power_w = cut_n = coupling_k = coupling_b = 0.0
         fx = fy = fz = 0.0
         if self._model:
             c, a, vv = self._c, self._a, self._v
-            c[0], c[1], c[2] = p
             a[0], a[1], a[2] = ax, ay, az
-            vv[0], vv[1], vv[2] = v
+            coupled = self._coupled
+            if coupled or self._limited:
+                # The haptic stage steps by the client's clock; an interval it cannot use
+                # (first tick, repeated or backwards time) counts as the usual one.
+                hs = self.haptics
+                last_t = self._tick_t_us
+                self._tick_t_us = pose.t_client_us
+                dt_us = -1 if last_t is None else pose.t_client_us - last_t
+                if dt_us > 0:
+                    dt_s = min(dt_us, self._gap_us) * 1e-6
+                else:
+                    dt_s = hs.state[S_PERIOD] if hs.state[S_PERIOD] > 0.0 else 1e-3
+            if coupled:
+                dp, dv = hs.device_p, hs.device_v
+                dp[0], dp[1], dp[2] = p
+                dv[0], dv[1], dv[2] = v
+                if coupled_predict(hs.state, hs.params, dp, dv, dt_s, self._jumped, c,
+                                   vv) & PLACED:
+                    engine.forget_last_carve()  # the proxy jumped: no sweep from before
+                self._jumped = False
+            else:
+                c[0], c[1], c[2] = p
+                vv[0], vv[1], vv[2] = v
             carve = self._carve and not pose.flags & FLAG_NO_CARVE
             t0 = time.perf_counter_ns()
             removed = engine.step_raw(c, a, vv, rpm, carve)
@@ -315,13 +370,42 @@ class Session:
             if shaft[SHAFT_VOLUME] > 0.0 or shaft[SHAFT_DEPTH] > 0.0:
                 status |= STATUS_SHAFT_CONTACT
             fx, fy, fz = out[OUT_FORCE:OUT_FORCE + 3]
-            sx, sy, sz = shaft[SHAFT_FORCE:SHAFT_FORCE + 3]
-            force = tf.direction_out((fx + sx, fy + sy, fz + sz))
             tx, ty, tz = out[OUT_TORQUE:OUT_TORQUE + 3]
+            resistive = out[OUT_COMPONENTS:OUT_COMPONENTS + 3]
+            power_w = out[OUT_POWER] * 1e-3
+            if coupled:
+                # The proxy met its own cut (haptics.coupling), λ times the trial's in
+                # magnitude; the hand feels the coupling, which also carries the shaft and
+                # the rigid contacts.
+                if coupled_finish(hs.state, hs.params, engine.out, engine.jacobian,
+                                  engine.shaft_out, abs(rpm) >= self._min_cutting_rpm,
+                                  self._radius_mm, hs.result, hs.scratch) & CLAMPED:
+                    status |= STATUS_CLAMPED
+                r = hs.result.tolist()
+                lam = r[3]
+                fx, fy, fz = r[14:17]
+                tx, ty, tz = tx * lam, ty * lam, tz * lam
+                resistive = r[17:20]
+                power_w *= lam
+                force = tf.direction_out(r[0:3])
+                coupling_k = r[5] * tf.scale
+                coupling_b = r[6] * tf.scale
+                proxy_p = tf.point_out(r[7:10])
+                proxy_v = tf.vector_out(r[10:13])
+                v = r[10:13]  # the velocity that cut: the proxy's
+            else:
+                sx, sy, sz = shaft[SHAFT_FORCE:SHAFT_FORCE + 3]
+                if self._limited:
+                    f = hs.force
+                    f[0], f[1], f[2] = fx + sx, fy + sy, fz + sz
+                    if raw_limits(hs.state, hs.params, f, dt_s) & CLAMPED:
+                        status |= STATUS_CLAMPED
+                    force = tf.direction_out(f.tolist())
+                else:
+                    force = tf.direction_out((fx + sx, fy + sy, fz + sz))
             sx, sy, sz = shaft[SHAFT_TORQUE:SHAFT_TORQUE + 3]
             torque = tf.torque_out((tx + sx, ty + sy, tz + sz))
-            resistive = tuple(out[OUT_COMPONENTS:OUT_COMPONENTS + 3])
-            power_w = out[OUT_POWER] * 1e-3
+            resistive = tuple(resistive)
             cut_n = math.sqrt(fx * fx + fy * fy + fz * fz)
             if self.recorder is not None:
                 self.recorder.record(t_recv_ns, pose, c, a, vv, rpm, carve, engine.out,
@@ -338,8 +422,8 @@ class Session:
         self.last_force_N = math.sqrt(force[0] ** 2 + force[1] ** 2 + force[2] ** 2)
         return (self.id, pose.seq, pose.t_client_us, t_recv_ns // 1000,
                 time.monotonic_ns() // 1000, OK, status, force, resistive, torque, power_w,
-                amplitude, frequency, vib_axis, ZERO3, ZERO3, 0.0, 0.0, removed_mm3,
-                engine.grid.version, tf.vector_out(v))
+                amplitude, frequency, vib_axis, proxy_p, proxy_v, coupling_k, coupling_b,
+                removed_mm3, engine.grid.version, tf.vector_out(v))
 
     # -- statistics -------------------------------------------------------------------------
     def reset_statistics(self) -> None:

@@ -20,6 +20,7 @@ from .kernels import (
     OUT_TORQUE,
     OUT_VOLUME_RATE,
     new_buffer,
+    new_scratch,
 )
 from .params import CuttingParams
 from .workpiece import FlatWorkpiece, Workpiece
@@ -98,7 +99,7 @@ class CuttingModel:
         self.params = params if params is not None else CuttingParams()
         self.workpiece = workpiece if workpiece is not None else FlatWorkpiece()
         self.grid = BurrGrid.build(n_theta, n_phi, refine)
-        self._scratch = new_buffer()
+        self._scratch = new_scratch()
         self._out = new_buffer()
 
     def set_resolution(self, n_theta: int, n_phi: int | None = None,

@@ -27,6 +27,9 @@ OUT_CONTACT_AREA = 11  # burr area in bone regardless of feed, mm²
 OUT_SURFACE_NORMAL = 12  # [12:15] outward bone-surface normal at the cut, world frame
 OUT_COMPONENTS = 15  # [15:18] feed, lateral, normal components of the force, N
 N_OUT = 18
+# The scratch accumulator holds the result's first N_OUT entries while it is summed, then:
+ACC_JACOBIAN = N_OUT  # [18:27] ∂F/∂v_f row-major, world frame, N·s/mm (see accumulate_forces)
+N_ACC = N_OUT + 9
 
 
 @njit(cache=True, nogil=True)
@@ -80,7 +83,11 @@ def box_fraction(g0, half_a, half_b):
 
 @njit(cache=True, nogil=True)
 def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, radius):
-    """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_OUT,)).
+    """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_ACC,)).
+
+    Each element's force is linear in the feed (|Ft_i| ∝ n_i·v_f), so for the elements
+    that cut the total force is exactly ``F = J·v_f`` with ``J = Σ f_i n_iᵀ / (n_i·v_f)``;
+    ``J`` is accumulated too: the haptic stage integrates the burr proxy implicitly with it.
 
     Args:
         ft: tangential force magnitude |Ft|, N; fn: normal force magnitude, N (K·|Ft| for a
@@ -92,9 +99,24 @@ def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, r
     """
     # n = (st cp, st sp, ct), φ̂ = (−sp, cp, 0), θ̂ = (ct cp, ct sp, −st) in the tool frame.
     # F = −|Ft|·sgn·φ̂ − Fn·n;  T = R·n × F = |Ft|·R·sgn·θ̂ (the normal part has no moment).
-    acc[0] -= -ft * spin_sign * sp + fn * st * cp
-    acc[1] -= ft * spin_sign * cp + fn * st * sp
-    acc[2] -= fn * ct
+    f1 = ft * spin_sign * sp - fn * st * cp
+    f2 = -(ft * spin_sign * cp + fn * st * sp)
+    f3 = -fn * ct
+    acc[0] += f1
+    acc[1] += f2
+    acc[2] += f3
+    n1 = st * cp / vn
+    n2 = st * sp / vn
+    n3 = ct / vn
+    acc[18] += f1 * n1
+    acc[19] += f1 * n2
+    acc[20] += f1 * n3
+    acc[21] += f2 * n1
+    acc[22] += f2 * n2
+    acc[23] += f2 * n3
+    acc[24] += f3 * n1
+    acc[25] += f3 * n2
+    acc[26] += f3 * n3
     tr = ft * radius * spin_sign
     acc[3] += tr * ct * cp
     acc[4] += tr * ct * sp
@@ -122,10 +144,31 @@ def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_si
 
 
 @njit(cache=True, nogil=True)
+def rotate_jacobian(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
+    """J_world = E·J_tool·Eᵀ in place in ``acc[ACC_JACOBIAN:]``, E = [e1 e2 e3] by columns."""
+    j = ACC_JACOBIAN
+    for r in range(3):  # rows: J_tool·Eᵀ
+        a1 = acc[j + 3 * r]
+        a2 = acc[j + 3 * r + 1]
+        a3 = acc[j + 3 * r + 2]
+        acc[j + 3 * r] = a1 * e1x + a2 * e2x + a3 * e3x
+        acc[j + 3 * r + 1] = a1 * e1y + a2 * e2y + a3 * e3y
+        acc[j + 3 * r + 2] = a1 * e1z + a2 * e2z + a3 * e3z
+    for c in range(3):  # columns: E·(J_tool·Eᵀ)
+        t1 = acc[j + c]
+        t2 = acc[j + 3 + c]
+        t3 = acc[j + 6 + c]
+        acc[j + c] = e1x * t1 + e2x * t2 + e3x * t3
+        acc[j + 3 + c] = e1y * t1 + e2y * t2 + e3y * t3
+        acc[j + 6 + c] = e1z * t1 + e2z * t2 + e3z * t3
+
+
+@njit(cache=True, nogil=True)
 def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
     """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out`` and
     resolve the force into the thesis's components.
 
+    ``acc[ACC_JACOBIAN:]`` (tool frame) is rotated to the world frame in place.
     ``acc[12:15]`` must hold the outward surface normal ŝ (world frame). As model.md defines
     them: feed = F·f̂ with f̂ = v_f/|v_f|; normal = F·ŝ; lateral = F·(ŝ×f̂) (left of the feed seen
     from outside the bone). Feed and lateral are zero without feed. For a feed in the surface
@@ -140,6 +183,7 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
         out[base] = a1 * e1x + a2 * e2x + a3 * e3x
         out[base + 1] = a1 * e1y + a2 * e2y + a3 * e3y
         out[base + 2] = a1 * e1z + a2 * e2z + a3 * e3z
+    rotate_jacobian(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     fx = out[0]
     fy = out[1]
     fz = out[2]
@@ -193,10 +237,11 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
         us: Us, N/mm².  k: K.  cutting: False below the minimum cutting speed (contact only).
         plane_point: (3,) a point on the bone surface, mm.
         plane_normal: (3,) unit outward surface normal; bone lies on the other side.
-        acc: (N_OUT,) scratch; out: (N_OUT,) result, laid out as the OUT_* constants.
+        acc: (N_ACC,) scratch; out: (N_OUT,) result, laid out as the OUT_* constants.
     """
-    for i in range(N_OUT):
+    for i in range(N_ACC):
         acc[i] = 0.0
+    for i in range(N_OUT):
         out[i] = 0.0
     sx = plane_normal[0]
     sy = plane_normal[1]
@@ -285,5 +330,10 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
 
 
 def new_buffer() -> np.ndarray:
-    """A zeroed result/scratch vector of shape (N_OUT,)."""
+    """A zeroed result vector of shape (N_OUT,)."""
     return np.zeros(N_OUT, dtype=np.float64)
+
+
+def new_scratch() -> np.ndarray:
+    """A zeroed accumulator of shape (N_ACC,) (the kernels' ``acc``)."""
+    return np.zeros(N_ACC, dtype=np.float64)
