@@ -4,6 +4,7 @@ httpx, real UDP clients cutting, real files. Every wait is bounded."""
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import httpx
@@ -12,7 +13,12 @@ import pytest
 
 from burrforce.client import BurrClient
 from burrforce.proto.bricks import decode_delta
-from burrforce.proto.messages import FLAG_NEW_STREAM, STATUS_CUTTING, UNKNOWN_SESSION
+from burrforce.proto.messages import (
+    FLAG_NEW_STREAM,
+    STATUS_CLAMPED,
+    STATUS_CUTTING,
+    UNKNOWN_SESSION,
+)
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.stack import ServerStack
 from burrforce.server.bone import LoadOptions, load_bone, phantom, save_bone
@@ -235,9 +241,10 @@ def test_features_off_are_skipped(stack, api):
     sid = s["id"]
     f = api.get(f"/sessions/{sid}/features").json()
     assert f == {"model": True, "carving": True, "vibration": True, "shaft": True,
-                 "deltas": True, "coupling": False}
-    r = api.put(f"/sessions/{sid}/features", json={**f, "coupling": True})
-    assert r.status_code == 422 and "not available" in r.text
+                 "deltas": True, "coupling": None}
+    assert api.get(f"/sessions/{sid}").json()["output"] == "raw"
+    r = api.put(f"/sessions/{sid}/features", json={**f, "coupling": "sometimes"})
+    assert r.status_code == 422
     api.put(f"/sessions/{sid}/features", json={**f, "carving": False, "vibration": False})
     replies = _groove(stack, s, 0.0, 60)
     assert replies[-1].status & STATUS_CUTTING and replies[-1].removed_mm3 == 0.0
@@ -432,3 +439,46 @@ def test_deltas_answer_while_a_client_streams(stack, api):
         stop.set()
         t.join(30)
     api.delete(f"/sessions/{s['id']}")
+
+
+# -- haptic output ----------------------------------------------------------------------------
+def test_a_device_profile_turns_on_the_coupled_output(stack, api):
+    """A device profile makes the output coupled: the reply carries the coupling model and
+    the force stays within the device's limits; coupling false keeps the raw force (held to
+    the device's limits); device none is the unlimited raw force again."""
+    s = _session(api)
+    sid = s["id"]
+    raw = _groove(stack, s, 0.0, 150)
+    assert raw[-1].coupling_stiffness == 0.0 and raw[-1].proxy_position == (0.0, 0.0, 0.0)
+
+    r = api.patch(f"/sessions/{sid}/parameters", json={"device": "touch"})
+    assert r.status_code == 200, r.text
+    assert r.json()["device"] == "touch" and r.json()["device_limits"]["max_force_N"] == 3.3
+    assert api.get(f"/sessions/{sid}").json()["output"] == "coupled"
+    coupled = _groove(stack, s, 4.0, 300)
+    last = coupled[-1]
+    assert last.coupling_stiffness == pytest.approx(0.4)  # si_mm: N/mm
+    assert last.coupling_damping == pytest.approx(0.002)
+    assert all(math.hypot(*c.force) <= 3.3 + 1e-9 for c in coupled)
+    # The proxy cuts where the hand holds it: near the device, at the surface or below.
+    assert abs(last.proxy_position[0] - (2.0 + 0.003 * 299)) < 1.0
+
+    r = api.patch(f"/sessions/{sid}/parameters",
+                  json={"device_limits": {"max_force_N": 0.05}})
+    assert r.json()["device"] == "custom" and r.json()["device_limits"]["max_force_N"] == 0.05
+    api.put(f"/sessions/{sid}/features", json={**api.get(
+        f"/sessions/{sid}/features").json(), "coupling": False})
+    assert api.get(f"/sessions/{sid}").json()["output"] == "raw"
+    limited = _groove(stack, s, -4.0, 150)
+    assert limited[-1].coupling_stiffness == 0.0
+    assert max(math.hypot(*c.force) for c in limited) <= 0.05 + 1e-9
+    assert limited[-1].status & STATUS_CLAMPED
+
+    assert api.patch(f"/sessions/{sid}/parameters",
+                     json={"device": "none"}).json()["device"] is None
+    bad = api.patch(f"/sessions/{sid}/parameters",
+                    json={"device": "none", "device_limits": {"max_force_N": 1.0}})
+    assert bad.status_code == 422 and "device_limits" in bad.text
+    assert api.patch(f"/sessions/{sid}/parameters",
+                     json={"device": "phantom-omni"}).status_code == 422
+    api.delete(f"/sessions/{sid}")

@@ -26,6 +26,7 @@ from ..bone import Bone, Material, MaterialTable, ShaftParams
 from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError, save_bone
 from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
+from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 from ..model.params import CuttingParams
 from ..model.vibration import VibrationParams
@@ -86,6 +87,8 @@ class ManagedSession:
     config: SessionConfig
     features: Features
     primary_label: int | None = None
+    #: The haptic device the force is for (None: no device).
+    device: DeviceProfile | None = None
     materials: MaterialTable | None = None
     bone_info: dict | None = None
     ref: SharedBoneRef | None = None
@@ -106,11 +109,36 @@ class ManagedSession:
 
     def effective_config(self) -> SessionConfig:
         f = self.features
+        output = None if f.coupling is None else ("coupled" if f.coupling else "raw")
         return replace(self.config, model=f.model, carve=f.carving,
-                       vibration=self.vibration if f.vibration else None)
+                       vibration=self.vibration if f.vibration else None,
+                       haptics=HapticsConfig.for_device(self.device, output))
+
+    @property
+    def output(self) -> str:
+        """The output the session renders: raw or coupled."""
+        return self.effective_config().haptics.output
 
     def effective_shaft(self) -> ShaftParams:
         return self.shaft if self.features.shaft else replace(self.shaft, length_mm=0.0)
+
+
+def _device(current: DeviceProfile | None, p: Parameters) -> DeviceProfile | None:
+    """The device profile after ``p`` (parameters.device and device_limits)."""
+    limits = {} if p.device_limits is None else p.device_limits.model_dump(exclude_none=True)
+    name = p.device
+    if name is None and not limits:
+        return current
+    if name == "none":
+        if limits:
+            raise ValueError("device_limits need a device profile, not none")
+        return None
+    if name is None or name == "custom":
+        base = current if current is not None else PROFILES["generic"]
+        if name == "custom" and not limits and current is None:
+            raise ValueError("a custom device needs device_limits")
+        return base.customized(**limits) if limits else base
+    return PROFILES[name].customized(**limits) if limits else PROFILES[name]
 
 
 class ControlPlane:
@@ -367,6 +395,7 @@ class ControlPlane:
                 ("frame", p.frame), ("tool_axis", p.tool_axis),
                 ("placement_position", p.placement_position),
                 ("placement_orientation", p.placement_orientation)) if v is not None})
+            device = _device(session.device, p)
         except (TypeError, ValueError) as exc:
             raise ApiError(422, str(exc)) from None
         # The bone's voxels are checked once one is loaded (_check_bone for a new one).
@@ -395,16 +424,18 @@ class ControlPlane:
                 except ValueError as exc:
                     raise ApiError(422, str(exc)) from None
         old = (session.params, session.shaft, session.vibration, session.config,
-               session.materials, session.primary_label, session.overrides)
+               session.materials, session.primary_label, session.overrides, session.device)
         session.params, session.shaft, session.vibration, session.config = (
             params, shaft, vibration, config)
+        session.device = device
         session.materials, session.primary_label = materials, primary
         session.overrides = overrides
         try:
             self._push(session, materials=materials is not old[4])
         except Exception:
             (session.params, session.shaft, session.vibration, session.config,
-             session.materials, session.primary_label, session.overrides) = old
+             session.materials, session.primary_label, session.overrides,
+             session.device) = old
             raise
 
     def update_features(self, session_id: int, features: Features) -> ManagedSession:

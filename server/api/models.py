@@ -11,12 +11,14 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from ...proto.frames import FRAMES
+from ..haptics.profiles import PROFILE_NAMES
 
 FrameName = Literal[tuple(FRAMES)]  # type: ignore[valid-type]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(description="x, y, z")]
 Quat = Annotated[tuple[Finite, Finite, Finite, Finite], Field(description="x, y, z, w")]
 SessionId = Annotated[int, Field(ge=0, le=(1 << 32) - 1)]
+DeviceName = Literal[(*PROFILE_NAMES, "none")]  # type: ignore[valid-type]
 
 
 class Strict(BaseModel):
@@ -51,16 +53,24 @@ class Features(Strict):
     deltas: bool = Field(True, description="publish the bone to the control plane while it is "
                                            "cut (exports, deltas and snapshots of a session "
                                            "being cut); two integer writes per carving tick")
-    coupling: bool = Field(False, description="the coupled (device-stable) output; not in "
-                                              "this version: only false is accepted")
+    coupling: bool | None = Field(None, description=(
+        "the coupled output: a burr proxy integrated implicitly and a virtual coupling to "
+        "the device (stable on any device at any cutting damping; the reply carries the "
+        "coupling model). false: the raw model force. null: coupled when a device profile "
+        "is set (parameters.device), raw otherwise"))
 
-    @field_validator("coupling")
-    @classmethod
-    def _no_coupling_yet(cls, v: bool) -> bool:
-        if v:
-            raise ValueError("the coupled output mode (proxy and virtual coupling) is not "
-                             "available in this version; the reply carries the raw force")
-        return v
+
+class DeviceLimits(Strict):
+    """A custom device profile's limits (any subset; the rest from the base profile)."""
+
+    max_force_N: Finite | None = Field(None, gt=0.0, le=1e4)
+    max_stiffness_N_mm: Finite | None = Field(None, gt=0.0, le=1e4)
+    max_damping_N_s_mm: Finite | None = Field(None, gt=0.0, le=100.0)
+    max_slew_N_s: Finite | None = Field(None, gt=0.0, le=1e7)
+    rated_hz: Finite | None = Field(None, gt=0.0, le=1e5, description=(
+        "the update rate the stiffness is rated at"))
+    resolution_mm: Finite | None = Field(None, gt=0.0, le=10.0, description=(
+        "position resolution: the velocity estimator's noise bound"))
 
 
 class Parameters(Strict):
@@ -91,6 +101,12 @@ class Parameters(Strict):
     placement_position: Vec3 | None = Field(None, description=(
         "where the bone's world origin is in the engine's world, engine units"))
     placement_orientation: Quat | None = None
+    device: DeviceName | None = Field(None, description=(
+        "the haptic device the force is for: its force, stiffness and damping limits "
+        "(generic, touch, falcon, omega3; custom: device_limits over the current profile or "
+        "generic; none: no device, the raw force unlimited)"))
+    device_limits: DeviceLimits | None = Field(None, description=(
+        "custom limits (makes the profile custom)"))
 
     @field_validator("tool_axis")
     @classmethod

@@ -45,6 +45,7 @@ def session_view(plane: ControlPlane, s: ManagedSession, key: bool = False) -> d
         "bone": s.bone_info,
         "frame": s.config.frame,
         "features": s.features.model_dump(),
+        "output": s.output,
         "recording": s.recording["name"] if s.recording else None,
         "created": s.created_s,
     }
@@ -72,6 +73,10 @@ def parameters_view(s: ManagedSession) -> dict:
         "tool_axis": list(s.config.tool_axis) if s.config.tool_axis else None,
         "placement_position": list(s.config.placement_position),
         "placement_orientation": list(s.config.placement_orientation),
+        "device": None if s.device is None else s.device.name,
+        "device_limits": None if s.device is None else {
+            k: v for k, v in s.device.as_dict().items()
+            if k != "name" and not k.startswith("sim_")},
     }
 
 

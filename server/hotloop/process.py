@@ -26,6 +26,7 @@ from ..bone import Bone, BoneEngine, MaterialTable, ShaftParams, load_bone, phan
 from ..bone.engine import check_burr
 from ..bone.loaders import LoadOptions
 from ..bone.shared import SharedBone, SharedBoneRef
+from ..haptics.stage import warm_up as warm_haptics
 from ..model.params import CuttingParams
 from .dispatch import Dispatcher
 from .loop import open_socket, serve
@@ -233,6 +234,9 @@ def child_main(conn: Connection) -> None:
         for spec in config.sessions:
             dispatcher.add(build_session(spec))
         dispatcher.warm_up()
+        # Every session may be switched to the coupled output later: no first coupled
+        # packet may pay for loading its kernels.
+        warm_haptics()
         sock = open_socket(config.host, config.udp_port)
     except (OSError, ValueError) as exc:  # a bad bone or address: the message says it all
         conn.send(("error", exc.strerror if isinstance(exc, OSError) and exc.strerror
