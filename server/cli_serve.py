@@ -25,6 +25,7 @@ from ..proto.frames import FRAMES
 from ..proto.tag import parse_key
 from .api.config import DEFAULT_HTTP_PORT, DEFAULT_UDP_PORT, ServeConfig, load_config
 from .cli_args import float_in, int_in
+from .haptics.profiles import PROFILES
 
 STATUS_INTERVAL_S = 2.0
 TOKEN_FILE = "token"
@@ -55,6 +56,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kind", choices=("ct", "labels", "density"), default=None,
                    help="what a --bone file's voxels are (needed for npy, npz, NRRD, NIfTI, "
                         "PNG)")
+    p.add_argument("--device", choices=tuple(PROFILES), default=None,
+                   help="the haptic device the default session's force is for: the output "
+                        "is then coupled (a burr proxy and a virtual coupling within the "
+                        "device's limits; the reply carries the coupling model). Default: "
+                        "none, the raw model force")
     p.add_argument("--frame", choices=tuple(FRAMES), default=None,
                    help="the engine's frame and units for the default session. Default si_mm")
     p.add_argument("--session-id", type=int_in(0, (1 << 32) - 1, "session id"), default=None,
@@ -118,6 +124,7 @@ def main(args: argparse.Namespace) -> int:
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
+             "device": args.device,
              "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
              "token": args.token, "data_dir": args.data_dir,
              "bone_library": args.bone_library}
@@ -147,7 +154,8 @@ def main(args: argparse.Namespace) -> int:
             # The command line is the operator's own: any readable file, not only the library.
             path = Path(bone).expanduser().resolve()
             source = file_source(f"file:{path}", path, args.kind)
-        session = stack.add_session(source, Parameters(frame=config.frame),
+        session = stack.add_session(source, Parameters(frame=config.frame,
+                                                       device=config.device),
                                     session_id=config.session_id, key_hex=key_hex,
                                     authenticated=not config.no_auth)
         server = stack.server
@@ -197,7 +205,8 @@ def _ignore(signum: int, frame: object) -> None:
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
             new_token: bool, config: ServeConfig, conn_path: Path) -> None:
     say(f"ready in {elapsed_s:.1f} s")
-    say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, "
+    output = f"coupled output for a {config.device}" if config.device else "raw force"
+    say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
         + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
     say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")
     if new_token:

@@ -17,6 +17,7 @@ TOML (``burrforce serve --config FILE``)::
     bone = "phantom:temporal"
     voxel_mm = 0.2
     frame = "unity"
+    device = "touch"            # the haptic device the force is for: coupled output
 
 Environment variables: ``BURRFORCE_`` + the key in upper case (``BURRFORCE_HTTP_PORT=8080``,
 ``BURRFORCE_TOKEN=…``, ``BURRFORCE_BONE=phantom:workpiece``); lists are comma-separated.
@@ -30,6 +31,8 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+
+from ..haptics.profiles import PROFILES
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -60,6 +63,8 @@ class ServeConfig:
         cors_origins: browser origins allowed to call the API; empty turns CORS off.
         max_sessions: sessions the server holds at once (each keeps its bone in memory).
         bone, voxel_mm, frame: the default session's bone and engine frame.
+        device: the haptic device profile of the default session (``haptics.PROFILE_NAMES``):
+            its output is then coupled. None: no device, the raw force.
         session_id: the default session's id.
         key: the default session's key in hex; None makes a fresh one. ``no_auth`` drops it
             (loopback development only).
@@ -77,6 +82,7 @@ class ServeConfig:
     bone: str = "phantom:temporal"
     voxel_mm: float | None = None
     frame: str = "si_mm"
+    device: str | None = None
     session_id: int = 1
     key: str | None = None
     no_auth: bool = False
@@ -94,6 +100,9 @@ class ServeConfig:
                 math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
             raise ValueError(f"upload_max_mb must be a positive number, got "
                              f"{self.upload_max_mb!r}")
+        if self.device is not None and self.device not in PROFILES:
+            raise ValueError(f"device must be one of {', '.join(PROFILES)}, got "
+                             f"{self.device!r}")
         if self.token is not None and len(self.token) < 16:
             raise ValueError("token must be at least 16 characters (a guessable token is no "
                              "protection)")
@@ -106,7 +115,8 @@ class ServeConfig:
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
                     "upload_max_mb", "cors_origins", "max_sessions"),
-         "session": ("bone", "voxel_mm", "frame", "session_id", "key", "no_auth")}
+         "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
+                     "no_auth")}
 
 
 def _coerce(name: str, value: object, source: str) -> object:
