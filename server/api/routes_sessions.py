@@ -209,7 +209,8 @@ def patch_material(body: MaterialPatch, request: Request, session_id: int = Sess
 def get_state(request: Request, session_id: int = SessionPath,
               max_events: int = Query(100, ge=0, le=10_000)) -> dict:
     """Bone version, removed volume per material, forbidden-contact events (the latest
-    ``max_events``), counters and tick-time quantiles."""
+    ``max_events``), counters, tick-time quantiles and the haptic output (coupling stiffness
+    and damping in use, the passivity observer's energy, the proxy)."""
     plane = _plane(request)
     state = plane.session_state(session_id, max_events)
     latest = request.app.state.stats.latest

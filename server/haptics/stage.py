@@ -8,7 +8,17 @@ from ..bone.shaft import N_SHAFT
 from ..model.kernels import N_OUT
 from .config import HapticsConfig
 from .coupling import coupled_finish, coupled_predict, raw_limits
-from .layout import N_RESULT, S_FORCE, S_PERIOD, S_READY, new_state
+from .layout import (
+    N_RESULT,
+    R_B,
+    R_ENERGY,
+    R_K,
+    R_PROXY,
+    S_FORCE,
+    S_PERIOD,
+    S_READY,
+    new_state,
+)
 from .velocity import RING, velocity_step
 
 
@@ -59,16 +69,14 @@ class HapticStage:
         self.state[S_FORCE:S_FORCE + 3] = 0.0
 
     def snapshot(self) -> dict[str, object]:
-        """The stage's state for status reports (cheap)."""
-        from .layout import R_B, R_ENERGY, R_K, R_PROXY
-
+        """The stage's state for status reports (cheap); grid frame, mm, N."""
         r = self.result
         return {"output": self.config.output,
                 "profile": None if self.config.profile is None else self.config.profile.name,
                 "coupling_stiffness_N_mm": float(r[R_K]),
                 "coupling_damping_N_s_mm": float(r[R_B]),
                 "passivity_energy_mJ": float(r[R_ENERGY]),
-                "proxy_mm": [float(x) for x in r[R_PROXY:R_PROXY + 3]],
+                "proxy_grid_mm": [float(x) for x in r[R_PROXY:R_PROXY + 3]],
                 "packet_period_s": float(self.state[S_PERIOD])}
 
 

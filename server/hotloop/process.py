@@ -299,6 +299,7 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
             n = int(kwargs.get("max_events", 100))
             events = list(session.engine.events)[-n:] if n > 0 else []
             stats = session.stats()
+            stats["haptics"] = session.haptics.snapshot()
         stats.pop("tick_times_us")
         stats["events"] = [e.__dict__ for e in events]
         return stats
