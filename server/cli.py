@@ -137,11 +137,13 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     from .bench import latency as bench_latency
     from .bench import load as bench_load
     from .bench import model as bench_model
+    from .bench import stability as bench_stability
 
     bench_model.add_parser(bench_sub)
     bench_accuracy.add_parser(bench_sub)
     bench_load.add_parser(bench_sub)
     bench_latency.add_parser(bench_sub)
+    bench_stability.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -98,9 +98,12 @@ def track_period(state, params, dt_s):
     period = state[S_PERIOD]
     period = dt_s if period <= 0.0 else period + params[P_PERIOD_GAIN] * (dt_s - period)
     state[S_PERIOD] = period
-    b_max = params[P_MAX_DAMPING]
+    # A sampled damper is bounded like the spring (b·T/m < 2 on the device's mass): both
+    # scale with the rated period over the actual one.
+    rate = min(1.0, params[P_RATED_PERIOD] / period)
+    b_max = params[P_MAX_DAMPING] * rate
     k_max = params[P_MAX_STIFFNESS]
-    state[S_K] = min(k_max, k_max * params[P_RATED_PERIOD] / period, b_max / period)
+    state[S_K] = min(k_max * rate, b_max / period)
     state[S_B] = 0.5 * b_max
 
 
@@ -224,8 +227,17 @@ def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch):
     for i in range(3):
         rhs[i] = a * state[S_FREE + i]
     v = state[S_PROXY_V:S_PROXY_V + 3]
-    if not solve3(m, rhs, v):
-        # Degenerate linearization: the cut as an isotropic damper of the same strength.
+    solved = solve3(m, rhs, v)
+    if solved:
+        # The bone must not drive the proxy: the spindle's tangential forces can push along
+        # the motion (a burr "walking"), energy the device would receive from nowhere.
+        work = 0.0
+        for i in range(3):
+            work += (v[i] - state[S_FREE + i]) * v[i]
+        solved = work <= 0.0
+    if not solved:
+        # A degenerate or active linearization: the cut as an isotropic damper of the same
+        # strength, dissipative by construction.
         f2 = 0.0
         t2 = 0.0
         for i in range(3):
@@ -327,8 +339,7 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
         for i in range(3):
             dx[i] = state[S_DEVICE + i] - state[S_DEVICE_PREV + i]
         energy = observe(energy, state[S_FORCE:S_FORCE + 3], dx, cap)
-    alpha = control(energy, force, state[S_DEVICE_V:S_DEVICE_V + 3], dt,
-                    params[P_MAX_DAMPING])
+    alpha = control(energy, force, state[S_DEVICE_V:S_DEVICE_V + 3], dt, 2.0 * state[S_B])
     flags = 0
     if limit_force(force, state[S_FORCE:S_FORCE + 3], params[P_MAX_FORCE],
                    params[P_MAX_SLEW] * dt):
