@@ -22,10 +22,10 @@ Each tick, around the one bone-engine call:
    - the force for the hand is the coupling's, ``k·(x_proxy − x_dev) + b·(v_proxy − v_dev)``,
      then the passivity controller, the force clamp and the slew limit.
 
-The coupling's stiffness follows the packet rate: Colgate's condition b_device > k·T/2 + b
-means a device updated every T can hold at most a stiffness ∝ 1/T, so k is the profile's
-rated stiffness scaled by (rated period / T) and by the damping budget (k·T ≤ max damping);
-the coupling damping takes half the budget.
+The coupling follows the packet rate: Colgate's condition b_device > k·T/2 + b means a device
+updated every T holds at most a stiffness ∝ 1/T, and a sampled damper needs b·T/m < 2. With
+r = min(1, rated period / T) the damping budget is r·b_max: b = r·b_max/2 and
+k = min(r·k_rated, r·b_max/T).
 
 Units: mm, s, N (stiffness N/mm, damping N·s/mm, mass N·s²/mm).
 """
