@@ -44,6 +44,8 @@ class HapticsConfig:
         quantum: half a quantum rejects every window longer than two samples after each
         step), or 0.001 mm without a profile (an engine's float pose).
     velocity_window_s: the estimator's longest window.
+    trial_relax: how far the feed the bone engine evaluates moves toward each tick's guess of
+        the proxy's velocity, (0, 1] (``coupling.coupled_predict``).
     """
 
     output: str = "raw"

@@ -5,16 +5,16 @@ Each tick, around the one bone-engine call:
 
 1. :func:`coupled_predict` — where the proxy would go without bone: backward Euler of the
    proxy (mass m) pulled by the coupling spring k and damper b toward the device,
-   ``(m/dt + k·dt + b)·v⁺ = m/dt·v + k·(x_dev − x) + b·v_dev``. The bone engine then cuts at
-   the proxy's position with that velocity as the feed.
+   ``(m/dt + k·dt + b)·v_free = m/dt·v + k·(x_dev − x) + b·v_dev``. The bone engine then
+   cuts at the proxy's position with a predicted velocity as the feed.
 2. :func:`coupled_finish` — the bone's answer enters the same implicit step:
-   - the cutting force is linear in the feed speed (model.md: |Ft_i| ∝ n_i·v_f) and grows with
-     the depth of cut, so around the trial it is F(v) ≈ λ·F_trial with
-     ``λ = A·(1 − dt/h·ŝ·v_trial) / (A + β + dt/h·F_n)``: β = −F·v̂/|v| the cut's damping along
-     the feed, F_n = F·ŝ its push out of the bone, h the depth (a sphere cap of area a has
-     depth a/2πR). The denominator is ≥ A for any Us, K or rpm, so the step is stable
-     however stiff the cut (the explicit alternative needs β·dt/m < 2: ~10⁴ times too small
-     here);
+   - for the elements that cut, the cutting force is exactly linear in the feed, F = J·v
+     (model.md: |Ft_i| ∝ n_i·v_f; the force kernels accumulate J), and it weakens as the
+     proxy leaves the bone along the surface normal ŝ (h the depth of cut: a sphere cap of
+     area a is a/2πR deep). The step solves ``(A·I − J + dt/h·F·ŝᵀ)·v⁺ = A·v_free`` with
+     A = m/dt + k·dt + b. For a dissipative cut |v⁺| ≤ |v_free| whatever Us, K or rpm (the
+     explicit step needs β·dt/m < 2: ~10⁴ times too small here); a solution in which the
+     bone would push the proxy along its motion falls back to an isotropic damper;
    - what does not cut is a rigid obstacle: the burr below the minimum cutting speed and the
      shaft always. A penetration deeper than the contact skin is pushed out along the
      surface normal (a velocity constraint, a fraction of it per tick so that a burr placed
@@ -36,7 +36,13 @@ import math
 
 from numba import njit
 
-from ..model.kernels import OUT_CONTACT_AREA, OUT_FORCE, OUT_SURFACE_NORMAL
+from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE
+from ..model.kernels import (
+    OUT_CONTACT_AREA,
+    OUT_FORCE,
+    OUT_SURFACE_NORMAL,
+    resolve_components,
+)
 from .layout import (
     P_DEPTH_FLOOR,
     P_MAX_DAMPING,
@@ -62,6 +68,7 @@ from .layout import (
     R_PROXY_V,
     S_A,
     S_B,
+    S_CUT,
     S_DEVICE,
     S_DEVICE_PREV,
     S_DEVICE_V,
@@ -75,7 +82,6 @@ from .layout import (
     S_PROXY,
     S_PROXY_V,
     S_READY,
-    S_SHARE,
     S_TRIAL,
 )
 from .limits import limit_force
@@ -84,12 +90,6 @@ from .passivity import control, observe
 #: Bits of the predict/finish return values.
 PLACED = 1  # the proxy was (re)placed at the device: the engine must forget its last carve
 CLAMPED = 2  # a force limit changed the force
-
-#: The cut may grow at most this much over its trial value within one tick (the trial missed
-#: a speed-up); the next tick evaluates at the new speed anyway.
-MAX_CUT_SCALE = 4.0
-_SHAFT_FORCE = 0  # bone.shaft.SHAFT_FORCE (not imported: keeps haptics free of bone.*)
-_SHAFT_DEPTH = 7  # bone.shaft.SHAFT_DEPTH
 
 
 @njit(cache=True, nogil=True)
@@ -115,7 +115,7 @@ def place_proxy(state, device_p):
         state[S_PROXY_V + i] = 0.0
         state[S_FREE + i] = 0.0
     state[S_READY] = 1.0
-    state[S_SHARE] = 1.0
+    state[S_CUT] = 0.0
     state[S_ENERGY] = 0.0
     state[S_HAVE_PREV] = 0.0
 
@@ -125,11 +125,12 @@ def coupled_predict(state, params, device_p, device_v, dt_s, place, centre_out, 
     """Step 1 of a coupled tick: the proxy's free velocity, and the velocity the bone engine
     evaluates the cut at.
 
-    The cut's force is linear in the feed's magnitude but not in its direction (which
-    elements face the feed), so the engine must see a good guess of the proxy's next
-    velocity: the last one moved toward the free velocity by the share the bone let through
-    last tick. Pulled through bone, the free velocity points mostly where the coupling
-    spring is stretched (into the bone), the proxy's actual velocity along the cut.
+    Which elements cut depends on the feed's direction, so the engine must see a good guess
+    of the proxy's next velocity: while the bone cut the proxy last tick, its last velocity
+    (pulled through bone, the free velocity points mostly where the coupling spring is
+    stretched, into the bone; the proxy moves along the cut), else the free velocity;
+    relaxed toward that guess by ``P_TRIAL_RELAX`` per tick (a whole step would let the
+    proxy alternate between a cutting and a free tick).
 
     Args:
         state: float64 (N_STATE,); params: float64 (N_PARAMS,).
@@ -163,9 +164,7 @@ def coupled_predict(state, params, device_p, device_v, dt_s, place, centre_out, 
         flags |= PLACED
         for i in range(3):
             state[S_FREE + i] = b * device_v[i] / a
-    # The trial: the proxy's last velocity while it cuts (the cut's facing elements change
-    # little from tick to tick), the free velocity while it moves freely.
-    cut = state[S_SHARE] < 1.0
+    cut = state[S_CUT] != 0.0
     relax = params[P_TRIAL_RELAX] if flags == 0 else 1.0
     state[S_A] = a
     state[S_DT] = dt_s
@@ -285,11 +284,11 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
           + engine_out[OUT_FORCE + 2] ** 2)
     if cutting and f2 > 0.0:
         cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch)
-        state[S_SHARE] = 0.0
+        state[S_CUT] = 1.0
     else:
         for i in range(3):
             state[S_PROXY_V + i] = state[S_FREE + i]
-        state[S_SHARE] = 1.0
+        state[S_CUT] = 0.0
     # The force the bone put on the proxy, and its share of the trial's (power, torque).
     fb2 = 0.0
     for i in range(3):
@@ -310,11 +309,11 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
             by /= norm
             bz /= norm
             burr_depth = area / (2.0 * math.pi * radius_mm)
-    hx = shaft_out[_SHAFT_FORCE]
-    hy = shaft_out[_SHAFT_FORCE + 1]
-    hz = shaft_out[_SHAFT_FORCE + 2]
+    hx = shaft_out[SHAFT_FORCE]
+    hy = shaft_out[SHAFT_FORCE + 1]
+    hz = shaft_out[SHAFT_FORCE + 2]
     shaft_norm = math.sqrt(hx * hx + hy * hy + hz * hz)
-    shaft_depth = shaft_out[_SHAFT_DEPTH] if shaft_norm > 0.0 else 0.0
+    shaft_depth = shaft_out[SHAFT_DEPTH] if shaft_norm > 0.0 else 0.0
     if shaft_norm > 0.0:
         hx /= shaft_norm
         hy /= shaft_norm
@@ -352,36 +351,15 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
         result[R_PROXY + i] = state[S_PROXY + i]
         result[R_PROXY_V + i] = state[S_PROXY_V + i]
     result[R_CUT_SCALE] = lam
-    components(result, state[S_PROXY_V:S_PROXY_V + 3], engine_out)
+    # The cut the proxy met as model.md's components, about the proxy's velocity.
+    resolve_components(result[R_CUT:R_CUT + 3],
+                       engine_out[OUT_SURFACE_NORMAL:OUT_SURFACE_NORMAL + 3],
+                       state[S_PROXY_V:S_PROXY_V + 3], result[R_COMPONENTS:R_COMPONENTS + 3])
     result[R_PC_DAMPING] = alpha
     result[R_K] = k
     result[R_B] = b
     result[R_ENERGY] = energy
     return flags
-
-
-@njit(cache=True, nogil=True)
-def components(result, velocity, engine_out):
-    """The cut the proxy met as model.md's feed, lateral and normal components (the same
-    resolution as ``model.kernels.finish``, about the proxy's velocity)."""
-    fx = result[R_CUT]
-    fy = result[R_CUT + 1]
-    fz = result[R_CUT + 2]
-    sx = engine_out[OUT_SURFACE_NORMAL]
-    sy = engine_out[OUT_SURFACE_NORMAL + 1]
-    sz = engine_out[OUT_SURFACE_NORMAL + 2]
-    result[R_COMPONENTS + 2] = fx * sx + fy * sy + fz * sz
-    speed = math.sqrt(velocity[0] ** 2 + velocity[1] ** 2 + velocity[2] ** 2)
-    if speed == 0.0:
-        result[R_COMPONENTS] = 0.0
-        result[R_COMPONENTS + 1] = 0.0
-        return
-    ux = velocity[0] / speed
-    uy = velocity[1] / speed
-    uz = velocity[2] / speed
-    result[R_COMPONENTS] = fx * ux + fy * uy + fz * uz
-    result[R_COMPONENTS + 1] = (fx * (sy * uz - sz * uy) + fy * (sz * ux - sx * uz)
-                                + fz * (sx * uy - sy * ux))
 
 
 @njit(cache=True, nogil=True)

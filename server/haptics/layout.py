@@ -25,8 +25,7 @@ S_DEVICE_V = 22  # [22:25] device velocity this tick, mm/s
 S_DEVICE_PREV = 25  # [25:28] device position when the last force was sent, mm
 S_HAVE_PREV = 28  # 1 if S_DEVICE_PREV is valid (the observer can integrate)
 S_TRIAL = 29  # [29:32] the feed the bone engine evaluates: the predicted proxy velocity, mm/s
-S_SHARE = 32  # A / (A + the cut's damping) of the last tick: how much of the free motion the
-#               bone let through (predicts the next proxy velocity)
+S_CUT = 32  # 1 if the bone cut the proxy last tick (the next trial is then its velocity)
 N_STATE = 33
 
 # Parameters (``params_vector``).

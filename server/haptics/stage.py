@@ -19,7 +19,7 @@ from .layout import (
     S_READY,
     new_state,
 )
-from .velocity import RING, velocity_step
+from .velocity import new_ring, reset, velocity_step
 
 
 class HapticStage:
@@ -44,9 +44,7 @@ class HapticStage:
         self.state = new_state()
         self.result = np.zeros(N_RESULT, dtype=np.float64)
         self.scratch = np.zeros(12, dtype=np.float64)
-        self.ring_t = np.zeros(RING, dtype=np.float64)
-        self.ring_p = np.zeros((RING, 3), dtype=np.float64)
-        self.ring_state = np.zeros(2, dtype=np.int64)
+        self.ring_t, self.ring_p, self.ring_state = new_ring()
         self.centre = np.zeros(3)
         self.feed = np.zeros(3)
         self.device_p = np.zeros(3)
@@ -56,13 +54,13 @@ class HapticStage:
     def restart(self) -> None:
         """A new stream: forget the velocity samples and re-place the proxy on the next
         tick. The force the device renders is kept, so the slew limit starts from it."""
-        self.ring_state[:] = 0
+        reset(self.ring_state)
         self.state[S_READY] = 0.0
         self.state[S_PERIOD] = 0.0
 
     def forget_velocity(self) -> None:
         """A gap or a reset: the next sample starts a new estimate."""
-        self.ring_state[:] = 0
+        reset(self.ring_state)
 
     def device_released(self) -> None:
         """The device was sent zero force (an error reply): limit slew from zero."""

@@ -67,8 +67,8 @@ def velocity_step(ring_t_s, ring_p_mm, ring_state, t_s, px, py, pz, noise_mm, ma
     ring_state: int64 (2,) = [head (index of newest), count]; zeros for an empty ring.
     The ring's capacity is the length of its arrays (RING for :func:`new_ring`'s).
     t_s: sample time, s; px, py, pz: sample position, mm.
-    noise_mm: the position uncertainty bound d (quantization/2 + noise), mm, >= 0 (a negative
-    or NaN value counts as 0). The end-fit line runs through two *measured* samples, so
+    noise_mm: the position uncertainty bound d (a whole quantization step + noise), mm, >= 0
+    (a negative or NaN value counts as 0). The end-fit line runs through two *measured* samples, so
     samples each within q/2 of the truth can lie up to q off it: with d = q/2 the window
     collapses to 2 after every quantum step of a slow ramp; d = q keeps it long.
     max_span_s: the longest window, s; a window of one interval is used whatever its span

@@ -184,26 +184,34 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
         out[base + 1] = a1 * e1y + a2 * e2y + a3 * e3y
         out[base + 2] = a1 * e1z + a2 * e2z + a3 * e3z
     rotate_jacobian(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-    fx = out[0]
-    fy = out[1]
-    fz = out[2]
-    sx = out[12]
-    sy = out[13]
-    sz = out[14]
-    out[17] = fx * sx + fy * sy + fz * sz
+    resolve_components(out[0:3], out[12:15], v_feed, out[15:18])
+
+
+@njit(cache=True, nogil=True)
+def resolve_components(force, normal, v_feed, out):
+    """(feed, lateral, normal) of ``force`` into ``out`` (all float64 (3,)), as model.md
+    defines them: feed = F·f̂ with f̂ = v_f/|v_f|; normal = F·ŝ (``normal`` the outward surface
+    normal ŝ); lateral = F·(ŝ×f̂). Feed and lateral are zero without feed."""
+    fx = force[0]
+    fy = force[1]
+    fz = force[2]
+    sx = normal[0]
+    sy = normal[1]
+    sz = normal[2]
+    out[2] = fx * sx + fy * sy + fz * sz
     speed = math.sqrt(v_feed[0] ** 2 + v_feed[1] ** 2 + v_feed[2] ** 2)
     if speed == 0.0:
-        out[15] = 0.0
-        out[16] = 0.0
+        out[0] = 0.0
+        out[1] = 0.0
         return
     ux = v_feed[0] / speed
     uy = v_feed[1] / speed
     uz = v_feed[2] / speed
-    out[15] = fx * ux + fy * uy + fz * uz
+    out[0] = fx * ux + fy * uy + fz * uz
     lx = sy * uz - sz * uy
     ly = sz * ux - sx * uz
     lz = sx * uy - sy * ux
-    out[16] = fx * lx + fy * ly + fz * lz
+    out[1] = fx * lx + fy * ly + fz * lz
 
 
 @njit(cache=True, nogil=True)
