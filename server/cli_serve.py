@@ -205,7 +205,7 @@ def _ignore(signum: int, frame: object) -> None:
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
             new_token: bool, config: ServeConfig, conn_path: Path) -> None:
     say(f"ready in {elapsed_s:.1f} s")
-    output = f"coupled output for a {config.device}" if config.device else "raw force"
+    output = f"coupled output (device {config.device})" if config.device else "raw force"
     say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
         + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
     say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")

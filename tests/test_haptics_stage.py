@@ -222,6 +222,18 @@ def test_slower_packets_get_a_softer_coupling():
     assert r.coupling_stiffness == pytest.approx(3.0, rel=0.01)  # rated again
 
 
+def test_a_pause_in_the_stream_does_not_soften_the_coupling():
+    """A gap (here 300 ms: a client pausing) is not a packet interval: the coupling stays at
+    the rated stiffness for the packets after it."""
+    rig = Rig(HapticsConfig.for_device(PROFILES["falcon"]))
+    for _ in range(50):
+        rig.send((10.0, 0.0, 5.0))
+    r = rig.send((10.0, 0.0, 5.0), dt_us=300_000)
+    assert r.coupling_stiffness == pytest.approx(3.0)
+    r = rig.send((10.0, 0.0, 5.0))
+    assert r.coupling_stiffness == pytest.approx(3.0)
+
+
 def test_a_teleport_moves_the_proxy_without_cutting_a_trench():
     rig = Rig(HapticsConfig.for_device(PROFILES["generic"]))
     for _ in range(50):

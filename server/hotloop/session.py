@@ -331,13 +331,14 @@ class Session:
             coupled = self._coupled
             if coupled or self._limited:
                 # The haptic stage steps by the client's clock; an interval it cannot use
-                # (first tick, repeated or backwards time) counts as the usual one.
+                # (first tick, repeated or backwards time, a gap: a pause is not the packet
+                # rate the coupling is tuned to) counts as the usual one.
                 hs = self.haptics
                 last_t = self._tick_t_us
                 self._tick_t_us = pose.t_client_us
                 dt_us = -1 if last_t is None else pose.t_client_us - last_t
-                if dt_us > 0:
-                    dt_s = min(dt_us, self._gap_us) * 1e-6
+                if 0 < dt_us <= self._gap_us:
+                    dt_s = dt_us * 1e-6
                 else:
                     dt_s = hs.state[S_PERIOD] if hs.state[S_PERIOD] > 0.0 else 1e-3
             if coupled:
