@@ -347,6 +347,37 @@ class BurrRest:
         return self._json("PUT" if replace else "PATCH",
                           f"/sessions/{int(session_id)}/materials/{int(label)}", json=fields)
 
+    def fit_calibration(self, cases: Sequence[Mapping[str, Any]], *, fit: str = "us,k",
+                        k: float | None = None, components: Sequence[str] | None = None,
+                        confidence: float = 0.95, spin: str = "forward") -> dict:
+        """Fit Us (and K) to a case table on the server (``POST /v1/calibration/fit``):
+        ``cases`` are rows with orientation, angle_deg, depth_mm, feed_mm_s, rpm, radius_mm,
+        feed_N, lateral_N, normal_N. Returns what ``burrforce calibrate --json`` prints."""
+        return self._json("POST", "/calibration/fit", json=_fit_body(
+            cases, fit, k, components, confidence, spin))
+
+    def apply_calibration(self, session_id: int, *, label: int | None = None,
+                          us_n_mm2: float | None = None, k: float | None = None,
+                          cases: Sequence[Mapping[str, Any]] | None = None,
+                          fit: str = "us,k",
+                          provenance: Mapping[str, Any] | None = None) -> dict:
+        """Set a material's Us and K from a calibration (``POST
+        /v1/sessions/{id}/calibration``): values fitted elsewhere (``us_n_mm2``, ``k``, with
+        ``provenance`` kept beside them, e.g. the fit's CI and RMSE), or ``cases`` to fit on the
+        server (``fit`` = "us" or "us,k"; ``k`` then is the K held fixed by "us"). ``label``
+        defaults to the primary material."""
+        body: dict[str, Any] = {"label": label}
+        if cases is not None:
+            body["fit"] = _fit_body(cases, fit, k, None, 0.95, "forward")
+        else:
+            body.update(us_n_mm2=us_n_mm2, k=k, provenance=provenance)
+        return self._json("POST", f"/sessions/{int(session_id)}/calibration",
+                          json=_jsonable({k_: v for k_, v in body.items() if v is not None}))
+
+    def calibrations(self, session_id: int) -> dict:
+        """The calibrations applied to a session, by material label."""
+        return self._json("GET", f"/sessions/{int(session_id)}/calibration")
+
     def state(self, session_id: int, max_events: int = 100) -> dict:
         """Bone version, removed volume per material (mm³), the latest ``max_events``
         forbidden-contact events, counters, tick-time quantiles (µs)."""
@@ -470,6 +501,17 @@ class BurrRest:
     def recordings(self) -> list[dict]:
         """The recordings on the server: ``name``, ``bytes``, ``complete``, ``replay``."""
         return self._json("GET", "/recordings")
+
+
+def _fit_body(cases: Sequence[Mapping[str, Any]], fit: str, k: float | None,
+              components: Sequence[str] | None, confidence: float, spin: str) -> dict:
+    body: dict[str, Any] = {"cases": [dict(c) for c in cases], "fit": fit,
+                            "confidence": confidence, "spin": spin}
+    if k is not None:
+        body["k"] = k
+    if components is not None:
+        body["components"] = list(components)
+    return _jsonable(body)
 
 
 def _bone_request(source: str, kind: str | None, voxel_mm: float | None,

@@ -130,6 +130,12 @@ def _add_client(sub: argparse._SubParsersAction) -> None:
     demo.add_parser(sub)
 
 
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    from . import cli_calibrate
+
+    cli_calibrate.add_parser(sub)
+
+
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
@@ -154,6 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"burrforce {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_experiment(sub)
+    _add_calibrate(sub)
     _add_bone(sub)
     _add_serve(sub)
     _add_client(sub)

@@ -22,7 +22,7 @@ _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` 
 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
-    from . import routes_data, routes_sessions
+    from . import routes_calibration, routes_data, routes_sessions
 
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
@@ -85,5 +85,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     app.include_router(routes_sessions.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     app.include_router(routes_data.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    app.include_router(routes_calibration.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     return app

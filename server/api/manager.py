@@ -15,8 +15,9 @@ import secrets
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,7 @@ from ..bone import Bone, Material, MaterialTable, ShaftParams
 from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError, save_bone
 from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
+from ..calib.fit import summary_of
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 from ..model.params import CuttingParams
@@ -103,6 +105,8 @@ class ManagedSession:
     overrides: dict = field(default_factory=dict)
     #: What the hot loop was last sent (params, shaft, config, publish).
     sent: dict = field(default_factory=dict)
+    #: Calibrations applied over REST: material label → the latest record.
+    calibrations: dict = field(default_factory=dict)
     created_s: float = field(default_factory=time.time)
     #: Serializes changes to this session (loads, parameters, recordings).
     lock: threading.RLock = field(default_factory=threading.RLock)
@@ -476,6 +480,44 @@ class ControlPlane:
                 session.materials, session.overrides = old
                 raise
         return session
+
+    def apply_calibration(self, session_id: int, label: int | None, fit: object | None,
+                          us_n_mm2: float | None, k: float | None, provenance: dict | None,
+                          run_fit: Callable[..., dict]) -> dict:
+        """Set material ``label``'s (default the primary's) Us and K from a fit made here
+        (``run_fit(fit, default_k)``) or from values fitted elsewhere, and keep a record."""
+        session = self.ready(session_id)
+        label = session.primary_label if label is None else label
+        if label is None:
+            raise ApiError(422, "the session's bone has no primary material: give label")
+        assert session.materials is not None
+        if label not in session.materials:
+            raise ApiError(404, f"no material with label {label}")
+        before = session.materials[label]
+        result = None
+        if fit is not None:
+            result = run_fit(fit, before.k)
+            us_n_mm2, k = result["us"], result["k"]
+            summary = summary_of(result)
+        else:
+            summary = None
+        k = before.k if k is None else k
+        if not 0.0 <= k <= 100.0:
+            raise ApiError(422, f"the fitted K = {k:.4g} is outside [0, 100], which the model "
+                                "cannot take: fit Us alone with K fixed")
+        self.set_material(session_id, label, None, {"us_n_mm2": us_n_mm2, "k": k})
+        after = session.materials[label]
+        record = {
+            "label": label, "material": after.name, "us_n_mm2": after.us_n_mm2, "k": after.k,
+            "previous": {"us_n_mm2": before.us_n_mm2, "k": before.k},
+            "fit": summary, "provenance": provenance, "applied_s": time.time(),
+        }
+        with session.lock:
+            session.calibrations = {**session.calibrations, label: record}
+        answer = {"label": label, "material": asdict(after), "calibration": record}
+        if result is not None:
+            answer["result"] = result
+        return answer
 
     def _push(self, session: ManagedSession, materials: bool = False) -> None:
         """Send the loop what differs from what it has (if the session runs there): a Us

@@ -161,3 +161,70 @@ class SnapshotRequest(Strict):
 
 class RestoreRequest(Strict):
     snapshot: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
+
+
+class CaseRowBody(Strict):
+    """One replicate of the case table (docs/calibration.md): the case's geometry (model.md)
+    and its mean force components on the burr."""
+
+    orientation: Literal["parallel", "perpendicular", "diagonal"]
+    angle_deg: Finite = Field(gt=0.0, le=90.0)
+    depth_mm: Finite = Field(gt=0.0, le=200.0)
+    feed_mm_s: Finite = Field(gt=0.0, le=1e5)
+    rpm: Finite = Field(gt=0.0, le=1e7)
+    radius_mm: Finite = Field(gt=0.0, le=100.0)
+    feed_N: Finite = Field(ge=-1e4, le=1e4)
+    lateral_N: Finite = Field(ge=-1e4, le=1e4)
+    normal_N: Finite = Field(ge=-1e4, le=1e4)
+    source: str | None = Field(None, max_length=256)
+
+
+Component = Literal["feed", "lateral", "normal"]
+
+
+class FitRequest(Strict):
+    """Fit Us (and K) to a case table by linear least squares."""
+
+    cases: list[CaseRowBody] = Field(min_length=2, max_length=100_000)
+    fit: Literal["us", "us,k"] = Field("us,k", description="Us alone (K held at k) or both")
+    k: Finite | None = Field(None, ge=0.0, le=100.0,
+                             description="K held fixed when fit = 'us' (default 1.3, or the "
+                                         "material's K when applying to a session)")
+    components: list[Component] = Field(["feed", "lateral", "normal"], min_length=1,
+                                         max_length=3)
+    confidence: Finite = Field(0.95, gt=0.5, lt=1.0)
+    intervals: Literal["replicate", "ols"] = Field(
+        "replicate", description="replicate: robust to whole-run scatter between replicates; "
+                                 "ols: observations independent")
+    spin: Literal["forward", "reverse"] = Field(
+        "forward", description="the drill's spin in the experiment")
+
+    @field_validator("components")
+    @classmethod
+    def _distinct(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError("components must be distinct")
+        return value
+
+
+class CalibrationApply(Strict):
+    """Apply a calibration to a session's material: either a table to fit here (``fit``) or
+    values fitted elsewhere (``us_n_mm2``, optionally ``k``, e.g. from ``burrforce calibrate
+    --json``)."""
+
+    label: int | None = Field(None, ge=1, le=255,
+                              description="the material label (default the primary material)")
+    fit: FitRequest | None = None
+    us_n_mm2: Finite | None = Field(None, ge=0.0, le=1e7)
+    k: Finite | None = Field(None, ge=0.0, le=100.0,
+                             description="with us_n_mm2: the K to set (default: keep the "
+                                         "material's)")
+    provenance: dict[str, float | str | bool | list[float | str] | None] | None = Field(
+        None, description="what to keep with the values (CI, RMSE, source), shown by GET")
+
+    @field_validator("provenance")
+    @classmethod
+    def _small(cls, value: dict | None) -> dict | None:
+        if value is not None and len(value) > 64:
+            raise ValueError("provenance holds at most 64 entries")
+        return value

@@ -1,0 +1,66 @@
+"""Calibration: fit Us and K to a case table, and apply them to a session's material."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+
+from ..calib.design import ModelSetup, Sensitivities
+from ..calib.fit import FitError, FitOptions, calibrate
+from ..calib.table import CaseRow, CaseTableError, row_from_mapping
+from ..model.params import THESIS_K
+from .manager import ApiError, ControlPlane
+from .models import CalibrationApply, FitRequest
+from .routes_sessions import SessionPath
+
+router = APIRouter(tags=["calibration"])
+
+
+def _plane(request: Request) -> ControlPlane:
+    return request.app.state.plane
+
+
+def run_fit(body: FitRequest, default_k: float = THESIS_K) -> dict:
+    """The fit as ``burrforce calibrate --json`` prints it (422 on data that cannot be fitted).
+    """
+    try:
+        rows: list[CaseRow] = [row_from_mapping(r.model_dump(), f"cases[{i}]")
+                               for i, r in enumerate(body.cases)]
+        options = FitOptions(fit_k=body.fit == "us,k",
+                             k=body.k if body.k is not None else default_k,
+                             components=tuple(body.components), confidence=body.confidence,
+                             intervals=body.intervals)
+        return calibrate(rows, options, Sensitivities(ModelSetup(spin=body.spin))).as_dict()
+    except (FitError, CaseTableError, ValueError) as exc:
+        raise ApiError(422, str(exc)) from None
+
+
+@router.post("/calibration/fit")
+def fit(body: FitRequest) -> dict:
+    """Fit Us (and K) to a case table: estimates with confidence intervals, residuals per
+    component and case, the thesis's cross-validation (fit parallel + perpendicular, predict
+    diagonal) and leave-one-case-out. Applies nothing."""
+    return run_fit(body)
+
+
+@router.post("/sessions/{session_id}/calibration")
+def apply_calibration(body: CalibrationApply, request: Request,
+                      session_id: int = SessionPath) -> dict:
+    """Set a session material's Us and K from a calibration: fit ``fit.cases`` here, or take
+    ``us_n_mm2`` (and ``k``) fitted elsewhere. Applied between two packets, like a material
+    PATCH; the material's previous values and the fit's summary are kept (GET)."""
+    plane = _plane(request)
+    if (body.fit is None) == (body.us_n_mm2 is None):
+        raise ApiError(422, "give either fit (a case table to fit here) or us_n_mm2 (a value "
+                            "fitted elsewhere), not both or neither")
+    if body.fit is not None and body.k is not None:
+        raise ApiError(422, "k goes inside fit (held fixed when fit.fit = 'us'); with a fit, "
+                            "the applied K is the fit's")
+    return plane.apply_calibration(session_id, body.label, body.fit, body.us_n_mm2, body.k,
+                                   body.provenance, run_fit)
+
+
+@router.get("/sessions/{session_id}/calibration")
+def get_calibration(request: Request, session_id: int = SessionPath) -> dict:
+    """The calibrations applied to this session, by material label (latest per label)."""
+    s = _plane(request).get(session_id)
+    return {str(label): record for label, record in sorted(s.calibrations.items())}
