@@ -11,6 +11,7 @@ import numpy as np
 
 from .model import CuttingCase, CuttingModel, thesis_cases
 from .model.cases import ORIENTATIONS
+from .plotting import pyplot, save_figure
 
 
 @dataclass(frozen=True)
@@ -90,7 +91,7 @@ def plot_experiment(
 ) -> Path:
     """A PNG like the thesis's Fig. 19/20: components against cutting angle, a panel per
     orientation; model curves over a dense angle sweep, the table's angles marked."""
-    plt = _pyplot()
+    plt = pyplot()
     orientations = list(dict.fromkeys(r.orientation for r in rows))
     sweep = np.linspace(10.0, 90.0, 81)
     fig, axes = plt.subplots(1, len(orientations), figsize=(4.6 * len(orientations), 4.2),
@@ -118,22 +119,4 @@ def plot_experiment(
         fontsize=10,
     )
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def _pyplot():
-    try:
-        import matplotlib
-    except ImportError as exc:  # the core install stays lean; plots are an extra
-        raise RuntimeError(
-            "plotting needs matplotlib: pip install 'burrforce[plot]'"
-        ) from exc
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
+    return save_figure(fig, path)

@@ -297,7 +297,7 @@ def test_missing_file(tmp_path):
     ({"force_N": np.zeros((N, 3)), "sample_rate_hz": np.array([1.0, 2.0])},
      r"'sample_rate_hz' must be a scalar"),
     ({"force_N": np.full((N, 3), np.nan), "sample_rate_hz": 1.0},
-     r"300 NaN or infinite force value\(s\); the first at index 0"),
+     r"300 non-finite force value\(s\) \(NaN or inf\), the first in sample 0"),
     ({"force_N": np.zeros((10, 3)), "sample_rate_hz": 1.0}, r"10 samples; at least 64"),
     ({"force_N": np.zeros((N, 3)), "sample_rate_hz": -1.0}, r"finite and > 0"),
     ({"force_N": np.zeros((N, 3)), "sample_rate_hz": 1.0, "extra": np.array([None, 1])},

@@ -173,9 +173,9 @@ def render_markdown(rows: list[AccuracyRow], command: str, measure_mm: float) ->
 
 
 def plot(rows: list[AccuracyRow], path: Path) -> None:
-    from ..experiment import _pyplot
+    from ..plotting import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.6))
     summary = summarize(rows)
     markers = {512: "v", 1152: "o", 2048: "s"}
@@ -202,8 +202,7 @@ def plot(rows: list[AccuracyRow], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 _voxel_size = float_in(0.02, 0.5, "voxel size", "mm")

@@ -137,9 +137,9 @@ def render_markdown(rows: list[ModelBenchRow], wrapper_us: float, command: str) 
 
 
 def plot(rows: list[ModelBenchRow], path: Path) -> None:
-    from ..experiment import _pyplot
+    from ..plotting import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for refine in sorted({r.refine for r in rows}):
         sel = [r for r in rows if r.refine == refine]
@@ -165,8 +165,7 @@ def plot(rows: list[ModelBenchRow], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -294,11 +294,9 @@ def write_results(rows: list[dict], settings: dict, out: Path) -> tuple[Path, Pa
 def plot_map(rows: list[dict], path: Path) -> None:
     """Per profile: stable (filled circle) or not (cross) over Us scale × dt, raw on the left
     of each grid point, coupled on the right."""
-    import matplotlib
+    from ..plotting import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     profiles = [p for p in PROFILES if any(r["profile"] == p for r in rows)]
     n = max(1, len(profiles))
     cols = 2 if n > 1 else 1
@@ -332,8 +330,7 @@ def plot_map(rows: list[dict], path: Path) -> None:
         ax.axis("off")
     fig.suptitle("Stable operating region: raw (left of each point) vs coupled (right)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -32,7 +32,13 @@ from scipy import stats
 from ..model.cases import ORIENTATIONS
 from .recording import load_recording
 from .signal import RecordingAnalysis, analyse
-from .table import GEOMETRY_COLUMNS, CaseRow, CaseTableError, row_from_mapping
+from .table import (
+    GEOMETRY_COLUMNS,
+    CaseRow,
+    CaseTableError,
+    check_orientation,
+    row_from_mapping,
+)
 
 MANIFEST = "manifest.csv"
 RECORDING_SUFFIXES = (".csv", ".npz")
@@ -191,10 +197,7 @@ def process_recording(path: Path, fields: dict[str, object],
     missing = [c for c in GEOMETRY_COLUMNS if values.get(c) in (None, "")]
     if missing:
         raise CaseTableError(f"{path.name}: no {', '.join(missing)} in the manifest or the file")
-    orientation = str(values["orientation"]).strip().lower()
-    if orientation not in ORIENTATIONS:
-        raise CaseTableError(f"{path.name}: orientation must be one of "
-                             f"{', '.join(ORIENTATIONS)}, got {values['orientation']!r}")
+    orientation = check_orientation(values["orientation"], path.name)
     forces_on = str(values.get("forces_on") or default_forces_on).strip().lower()
     if forces_on not in FORCES_ON:
         raise ValueError(f"{path.name}: forces_on must be workpiece or burr, got {forces_on!r}")

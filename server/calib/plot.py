@@ -9,22 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from ..model.cases import ORIENTATIONS, CuttingCase
+from ..plotting import pyplot, save_figure
 from .design import Sensitivities
 from .fit import Calibration
 from .table import COMPONENTS
 
 SWEEP_DEG = np.linspace(10.0, 90.0, 81)
-
-
-def _pyplot():
-    try:
-        import matplotlib
-    except ImportError as exc:  # the core install stays lean; plots are an extra
-        raise RuntimeError("plotting needs matplotlib: pip install 'burrforce[plot]'") from exc
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _sweep(sens: Sensitivities, like: CuttingCase, us: float, k: float) -> np.ndarray:
@@ -47,7 +37,7 @@ def plot_calibration(cal: Calibration, path: str | Path, sens: Sensitivities | N
     other geometries are still drawn. With the thesis's validation available, the diagonal row
     also shows the parallel + perpendicular fit's prediction, dashed.
     """
-    plt = _pyplot()
+    plt = pyplot()
     sens = sens if sens is not None else Sensitivities()
     est = cal.estimate
     present = {r.case.orientation for r in cal.rows}
@@ -102,8 +92,4 @@ def plot_calibration(cal: Calibration, path: str | Path, sens: Sensitivities | N
                  f"observations ({', '.join(cal.options.components)})\n"
                  f"curves: {curves}", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

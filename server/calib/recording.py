@@ -405,14 +405,7 @@ def _read_npz(path: Path, sample_rate_hz: float | None) -> Recording:
     else:
         raise RecordingError(f"{where}: no force: expected entry 'force_N' (n, 3) or entries "
                              f"'fx_N', 'fy_N', 'fz_N'; found {sorted(entries)}")
-    bad = ~np.isfinite(force)
-    if bad.any():
-        row = int(np.argmax(bad.any(axis=1)))
-        raise RecordingError(f"{where}: {int(bad.sum())} NaN or infinite force value(s); the "
-                             f"first at index {row}")
-    if len(force) < MIN_SAMPLES:
-        raise RecordingError(f"{where}: {len(force)} samples; at least {MIN_SAMPLES} are needed")
-
+    # Recording() checks the values themselves (finite, enough samples).
     rate_in_file: float | None = None
     file_what = "entry sample_rate_hz"
     if "sample_rate_hz" in entries:

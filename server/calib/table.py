@@ -78,10 +78,7 @@ def row_from_mapping(values: dict[str, object], where: str) -> CaseRow:
     missing = [c for c in COLUMNS if values.get(c) in (None, "")]
     if missing:
         raise CaseTableError(f"{where}: missing {', '.join(missing)}")
-    orientation = str(values["orientation"]).strip().lower()
-    if orientation not in ORIENTATIONS:
-        raise CaseTableError(f"{where}: orientation must be one of "
-                             f"{', '.join(ORIENTATIONS)}, got {values['orientation']!r}")
+    orientation = check_orientation(values["orientation"], where)
     numbers = {c: _number(values[c], c, where) for c in COLUMNS[1:]}
     for c in FORCE_COLUMNS:
         if abs(numbers[c]) > MAX_FORCE_N:
@@ -97,6 +94,15 @@ def row_from_mapping(values: dict[str, object], where: str) -> CaseRow:
         raise CaseTableError(f"{where}: {exc}") from None
     return CaseRow(case, numbers["feed_N"], numbers["lateral_N"], numbers["normal_N"],
                    str(values.get("source") or ""))
+
+
+def check_orientation(value: object, where: str) -> str:
+    """The orientation's name, case-folded; CaseTableError naming ``where`` if unknown."""
+    orientation = str(value).strip().lower()
+    if orientation not in ORIENTATIONS:
+        raise CaseTableError(f"{where}: orientation must be one of "
+                             f"{', '.join(ORIENTATIONS)}, got {value!r}")
+    return orientation
 
 
 def _number(value: object, column: str, where: str) -> float:
