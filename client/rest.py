@@ -349,26 +349,31 @@ class BurrRest:
 
     def fit_calibration(self, cases: Sequence[Mapping[str, Any]], *, fit: str = "us,k",
                         k: float | None = None, components: Sequence[str] | None = None,
-                        confidence: float = 0.95, spin: str = "forward") -> dict:
+                        confidence: float = 0.95, intervals: str = "replicate",
+                        spin: str = "forward") -> dict:
         """Fit Us (and K) to a case table on the server (``POST /v1/calibration/fit``):
         ``cases`` are rows with orientation, angle_deg, depth_mm, feed_mm_s, rpm, radius_mm,
-        feed_N, lateral_N, normal_N. Returns what ``burrforce calibrate --json`` prints."""
+        feed_N, lateral_N, normal_N; ``intervals`` "replicate" (robust to whole-run scatter) or
+        "ols"; ``spin`` the drill's in the experiment. Returns what ``burrforce calibrate
+        --json`` prints."""
         return self._json("POST", "/calibration/fit", json=_fit_body(
-            cases, fit, k, components, confidence, spin))
+            cases, fit, k, components, confidence, intervals, spin))
 
     def apply_calibration(self, session_id: int, *, label: int | None = None,
                           us_n_mm2: float | None = None, k: float | None = None,
                           cases: Sequence[Mapping[str, Any]] | None = None,
                           fit: str = "us,k",
-                          provenance: Mapping[str, Any] | None = None) -> dict:
+                          provenance: Mapping[str, Any] | None = None,
+                          components: Sequence[str] | None = None, confidence: float = 0.95,
+                          intervals: str = "replicate", spin: str = "forward") -> dict:
         """Set a material's Us and K from a calibration (``POST
         /v1/sessions/{id}/calibration``): values fitted elsewhere (``us_n_mm2``, ``k``, with
         ``provenance`` kept beside them, e.g. the fit's CI and RMSE), or ``cases`` to fit on the
-        server (``fit`` = "us" or "us,k"; ``k`` then is the K held fixed by "us"). ``label``
-        defaults to the primary material."""
+        server (``fit`` = "us" or "us,k"; ``k`` then is the K held fixed by "us"; the other
+        options as :meth:`fit_calibration`). ``label`` defaults to the primary material."""
         body: dict[str, Any] = {"label": label}
         if cases is not None:
-            body["fit"] = _fit_body(cases, fit, k, None, 0.95, "forward")
+            body["fit"] = _fit_body(cases, fit, k, components, confidence, intervals, spin)
         else:
             body.update(us_n_mm2=us_n_mm2, k=k, provenance=provenance)
         return self._json("POST", f"/sessions/{int(session_id)}/calibration",
@@ -504,9 +509,10 @@ class BurrRest:
 
 
 def _fit_body(cases: Sequence[Mapping[str, Any]], fit: str, k: float | None,
-              components: Sequence[str] | None, confidence: float, spin: str) -> dict:
+              components: Sequence[str] | None, confidence: float, intervals: str,
+              spin: str) -> dict:
     body: dict[str, Any] = {"cases": [dict(c) for c in cases], "fit": fit,
-                            "confidence": confidence, "spin": spin}
+                            "confidence": confidence, "intervals": intervals, "spin": spin}
     if k is not None:
         body["k"] = k
     if components is not None:

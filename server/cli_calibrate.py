@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if args.make_example is not None:
         return _make_example(args)
     from .calib.design import ModelSetup, Sensitivities
-    from .calib.fit import FitOptions, calibrate
+    from .calib.fit import FitOptions, calibrate, finite_or_none
     from .calib.table import read_case_table
 
     if args.label is not None and args.apply is None:
@@ -131,10 +131,21 @@ def run(args: argparse.Namespace) -> int:
         result["recordings"] = [r.as_dict() for r in folder.reports]
         result["vibration"] = folder.vibration(args.confidence)
         result["failures"] = folder.failures
+        result["recording_warnings"] = folder.warnings
+    if args.plot is not None:
+        from .calib.plot import plot_calibration
+
+        plot_calibration(cal, args.plot, sens)
+    # Apply last, after everything is written: a refusal must not cost the fit.
+    apply_error = None
     if args.apply is not None:
-        result["applied"] = _apply(args, cal)
+        try:
+            result["applied"] = _apply(args, cal)
+        except (ValueError, RuntimeError) as exc:
+            apply_error = str(exc)
+            result["apply_error"] = apply_error
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(finite_or_none(result), indent=2, allow_nan=False))
     else:
         from .calib.report import format_calibration, format_recordings
 
@@ -142,19 +153,18 @@ def run(args: argparse.Namespace) -> int:
             print(format_recordings(folder))
             print()
         print(format_calibration(cal))
-        if args.apply is not None:
+        if "applied" in result:
             a = result["applied"]
             print(f"\napplied to session {args.apply}, material {a['label']} "
                   f"({a['material']['name']}): Us = {a['material']['us_n_mm2']:.6g} N/mm², "
                   f"K = {a['material']['k']:.6g}")
     sys.stdout.flush()  # the report before what stderr adds
     if args.plot is not None:
-        from .calib.plot import plot_calibration
-
-        path = plot_calibration(cal, args.plot, sens)
-        print(f"plot written to {path}", file=sys.stderr)
+        print(f"plot written to {args.plot}", file=sys.stderr)
     if args.table_out is not None:
         print(f"case table written to {args.table_out}", file=sys.stderr)
+    if apply_error is not None:
+        raise RuntimeError(f"not applied: {apply_error}")
     return 0
 
 
@@ -205,13 +215,22 @@ def _apply(args: argparse.Namespace, cal) -> dict:
     from ..client import connection
     from ..client.rest import BurrRest, RestError
 
-    session = connection.read().session if args.apply == -1 else args.apply
+    est = cal.estimate
+    if not 0.0 <= est.k <= 100.0:
+        raise ValueError(f"the fitted K = {est.k:.4g} is outside [0, 100], which the model "
+                         "cannot take: fit Us alone (--fit us)")
+    try:
+        conn = connection.read()
+    except ValueError:
+        raise ValueError(f"no running server to apply to: no connection file at "
+                         f"{connection.default_path()} (start `burrforce serve`, or set "
+                         f"{connection.ENV_VAR} to the file it wrote)") from None
+    session = conn.session if args.apply == -1 else args.apply
     args.apply = session
     try:
         with BurrRest.from_connection() as api:
-            return api.apply_calibration(session, label=args.label,
-                                         us_n_mm2=cal.estimate.us,
-                                         k=cal.estimate.k, provenance=cal.summary())
+            return api.apply_calibration(session, label=args.label, us_n_mm2=est.us,
+                                         k=est.k, provenance=cal.summary())
     except RestError as exc:
         raise RuntimeError(f"the server refused the calibration: {exc}") from None
 

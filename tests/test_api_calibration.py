@@ -97,7 +97,13 @@ def test_values_fitted_elsewhere_are_applied_with_their_provenance(rest):
     assert materials[2]["us_n_mm2"] == 300.0 and materials[2]["k"] == answer["material"]["k"]
     record = rest.calibrations(sid)["2"]
     assert record["provenance"] == {"us_ci": [280.0, 320.0], "source": "lab 3"}
-    assert record["fit"] is None
+    assert record["fit"] is None and record["in_force"] is True
+    rest.set_material(sid, 2, us_n_mm2=310.0)  # set another way: the record says so
+    record = rest.calibrations(sid)["2"]
+    assert record["in_force"] is False and record["current"]["us_n_mm2"] == 310.0
+    assert record["us_n_mm2"] == 300.0
+    rest.apply_calibration(sid, label=2, us_n_mm2=300.0, provenance={"n_rows": 45})
+    assert rest.calibrations(sid)["2"]["provenance"] == {"n_rows": 45}  # an int stays one
     rest.delete_session(sid)
 
 
@@ -107,13 +113,17 @@ def test_bad_calibrations_are_refused_and_change_nothing(stack, rest):
     cases = _table(805.1, 1.3)
     on_workpiece = [{**c, "feed_N": -c["feed_N"], "lateral_N": -c["lateral_N"],
                      "normal_N": -c["normal_N"]} for c in cases]
+    # Normal forces that pull the burr in: the best K is negative.
+    negative_k = [{**c, "normal_N": -c["normal_N"]} for c in cases]
     refusals = [
         ({"us_n_mm2": 900.0, "fit": {"cases": cases}}, 422, "not both"),
         ({}, 422, "either fit"),
         ({"fit": {"cases": on_workpiece}}, 422, "ON THE BURR"),
         ({"fit": {"cases": cases}, "k": 1.0}, 422, "k goes inside fit"),
         ({"us_n_mm2": 900.0, "label": 9}, 404, "no material with label 9"),
-        ({"us_n_mm2": -5.0}, 422, "greater than or equal to 0"),
+        ({"us_n_mm2": -5.0}, 422, "greater than 0"),
+        ({"us_n_mm2": 0.0}, 422, "greater than 0"),
+        ({"fit": {"cases": negative_k}}, 422, "outside [0, 100]"),
         ({"fit": {"cases": [{**cases[0], "orientation": "sideways"}] * 3}}, 422, "orientation"),
         ({"fit": {"cases": cases, "components": ["feed", "feed"]}}, 422, "distinct"),
     ]

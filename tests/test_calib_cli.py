@@ -104,3 +104,14 @@ def test_the_command_runs_as_installed(table):
                           timeout=300)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["us"] > 0
+
+
+def test_a_refused_apply_still_prints_the_fit_and_writes_the_plot(table, tmp_path, monkeypatch,
+                                                                    capsys):
+    monkeypatch.setenv("BURRFORCE_CONNECTION", str(tmp_path / "none.json"))
+    plot = tmp_path / "fit.png"
+    assert main(["calibrate", "--cases", str(table), "--plot", str(plot), "--apply"]) == 2
+    captured = capsys.readouterr()
+    assert "Us = " in captured.out and plot.exists()
+    assert "not applied: no running server to apply to" in captured.err
+    assert "BURRFORCE_CONNECTION" in captured.err

@@ -194,6 +194,41 @@ def test_one_flipped_axis_is_warned_about(sens, cases):
     assert len(warnings) == 1 and warnings[0].startswith("lateral")
 
 
+def test_a_replicate_recorded_the_other_way_round_is_named(sens, cases):
+    rows = _rows(sens, cases, noise_N=0.01)
+    rows[4] = CaseRow(rows[4].case, -rows[4].feed_N, -rows[4].lateral_N, -rows[4].normal_N,
+                      source="run-5.csv")
+    warnings = calibrate(rows, FitOptions(), sens).warnings
+    assert any("1 row(s) oppose the model in every component: run-5.csv" in w
+               for w in warnings)
+
+
+def test_a_negative_k_and_an_interval_reaching_zero_are_warned_about(sens, cases):
+    pulled_in = [CaseRow(r.case, r.feed_N, r.lateral_N, -r.normal_N)
+                 for r in _rows(sens, cases, noise_N=0.01)]
+    cal = calibrate(pulled_in, FitOptions(), sens)
+    assert cal.estimate.k < 0 and any("K = " in w and "negative" in w for w in cal.warnings)
+    rng = np.random.default_rng(0)
+    noise = [CaseRow(c, *(0.02 * rng.standard_normal(3) + [-0.001, 0.0, 0.001]))
+             for c in cases for _ in range(2)]
+    try:
+        cal = calibrate(noise, FitOptions(fit_k=False), sens)
+    except FitError:  # the noise may land on Us ≤ 0: refused, which is fine too
+        return
+    assert any("barely determine Us" in w for w in cal.warnings)
+
+
+def test_nearly_exact_data_keep_a_bounded_k_interval(sens, cases):
+    """Rounding used to make Fieller's discriminant a hair negative on proportional data and
+    report K's interval as unbounded while Us sat 68 standard errors from zero."""
+    nineties = [c for c in cases if c.angle_deg == 90.0]
+    rows = _rows(sens, nineties, replicates=5, noise_N=0.0)
+    rows = [CaseRow(r.case, r.feed_N * (1 + 0.01 * i), r.lateral_N * (1 + 0.01 * i),
+                    r.normal_N * (1 + 0.01 * i)) for i, r in enumerate(rows)]
+    est = fit_rows(rows, sens, FitOptions())
+    assert est.k_ci_bounded and est.k_ci[0] <= est.k <= est.k_ci[1]
+
+
 def test_too_little_data_is_refused(sens, cases):
     with pytest.raises(FitError, match="cannot fit 2"):
         fit_rows(_rows(sens, cases[:1], replicates=1)[:1], sens,

@@ -157,12 +157,41 @@ def test_every_bad_recording_is_listed_and_skip_bad_keeps_the_rest(tmp_path):
      "run.npz,parallel,30,0.5,3,60000,2,hand\n", "forces_on must be workpiece or burr"),
     ("file,orientation,angle_deg,depth_mm,feed_mm_s,rpm,radius_mm\n"
      "run.npz,parallel,30,0.5,3,60000,2\nrun.npz,parallel,30,0.5,3,60000,2\n", "listed twice"),
+    ("file,orientation,angle_deg,depth_mm,feed_mm_s,rpm,radius_mm\n"
+     "run.npz,parallel,30,0.5,3,60000,2,oops\n", "8 cells, the header has 7"),
+    ("file,orientation,angle_deg,depth_mm,feed_mm_s,rpm,radius_mm,sample_rate_hz\n"
+     "run.npz,parallel,30,0.5,3,60000,2,fast\n", "sample_rate_hz is not a number: 'fast'"),
 ])
 def test_bad_manifests_say_what_is_wrong(tmp_path, manifest, message):
     save_recording(tmp_path / "run.npz", synthetic_recording([0.3, 0.0, -0.8], seed=0))
     (tmp_path / "manifest.csv").write_text(manifest)
     with pytest.raises(FolderError, match=message):
         process_folder(tmp_path)
+
+
+def test_a_semicolon_manifest_takes_decimal_commas(tmp_path):
+    folder = _folder(tmp_path, [-0.5, 0.05, 0.9])
+    text = (folder / "manifest.csv").read_text().replace(",", ";").replace("0.5", "0,5")
+    (folder / "manifest.csv").write_text(text)
+    assert process_folder(folder).rows[0].case.depth_mm == 0.5
+
+
+def test_a_recording_without_the_spindle_tone_is_flagged_and_its_json_stays_valid(tmp_path,
+                                                                                  capsys):
+    _folder(tmp_path, [-0.5, 0.05, 0.9], tone_amplitude_N=(0.0, 0.0, 0.0))
+    rows = (tmp_path / "manifest.csv").read_text().splitlines()
+    (tmp_path / "manifest.csv").write_text("\n".join(
+        [rows[0], rows[1], rows[1].replace("run.npz", "run2.npz")]) + "\n")
+    save_recording(tmp_path / "run2.npz", synthetic_recording(
+        -(component_basis(np.array([1.0, 0, 0]), np.array([0, 0, 1.0])).T
+          @ np.array([-0.5, 0.05, 0.9])) * 1.02, tone_amplitude_N=(0.0, 0.0, 0.0), seed=3))
+    assert main(["calibrate", "--recordings", str(tmp_path), "--fit", "us", "--json"]) == 0
+
+    def refuse(constant):
+        raise AssertionError(f"{constant} in the JSON")
+
+    out = json.loads(capsys.readouterr().out, parse_constant=refuse)
+    assert any("not the spindle's 1000 Hz" in w for w in out["recording_warnings"])
 
 
 def test_an_empty_folder_is_refused(tmp_path):

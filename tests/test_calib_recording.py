@@ -414,3 +414,31 @@ def test_fuzz_text(fuzz_path, head, sep, body, width, tail, rate, end):
 def test_fuzz_unicode(fuzz_path, text):
     fuzz_path.write_bytes(text.encode("utf-8", errors="surrogatepass"))
     _load_or_recording_error(fuzz_path, None)
+
+
+def test_units_in_the_header_are_applied_never_ignored(tmp_path):
+    rows = "\n".join(f"{i / 3:.6f},{0.001 * i},0.002,-0.003" for i in range(100))
+    path = tmp_path / "kn.csv"
+    path.write_text("time [ms],Fx [kN],fy_mN,Fz (N)\n" + rows + "\n")
+    rec = load_recording(path)
+    assert rec.sample_rate_hz == pytest.approx(3000.0, rel=1e-4)
+    assert rec.force_N[10].tolist() == pytest.approx([10.0, 2e-6, -0.003])
+    (tmp_path / "lbf.csv").write_text("t,Fx [lbf],Fy,Fz\n" + rows + "\n")
+    with pytest.raises(RecordingError, match="unknown force unit 'lbf'"):
+        load_recording(tmp_path / "lbf.csv")
+    (tmp_path / "min.csv").write_text("Time (min),Fx,Fy,Fz\n" + rows + "\n")
+    with pytest.raises(RecordingError, match="unknown time unit 'min'"):
+        load_recording(tmp_path / "min.csv")
+
+
+def test_saved_recordings_are_readable_by_others_as_the_umask_allows(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        for name in ("a.csv", "a.npz"):
+            path = save_recording(tmp_path / name, synthetic_recording([0, 0, -1], seed=0))
+            assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    finally:
+        os.umask(old)

@@ -273,3 +273,15 @@ def test_function_refusals():
     with pytest.raises(AnalysisError, match=r"too short for a smoothing window"):
         find_segments(np.zeros((100, 3)), FS, 1000.0)
     assert peak_amplitude(np.arange(10.0)) == 0.0  # no extrema, no oscillation
+
+
+@pytest.mark.parametrize("rate_hz, spindle_hz", [(3000.0, 1000.0), (3000.0, 300.0),
+                                                 (2500.0, 1000.0), (3000.0, 600.0)])
+def test_a_noise_free_step_is_found_to_the_sample_for_odd_and_even_windows(rate_hz,
+                                                                            spindle_hz):
+    """A 0 → 1 N step over raw samples [1200, 4800): the run is exactly that, whatever the
+    smoothing window's parity (an even one used to end a sample early)."""
+    force = np.zeros((6000, 3))
+    force[1200:4800, 2] = 1.0
+    seg = find_segments(force, rate_hz, spindle_hz)
+    assert seg.burring_full == (1200, 4800), seg.smoothing_samples

@@ -493,26 +493,26 @@ class ControlPlane:
         assert session.materials is not None
         if label not in session.materials:
             raise ApiError(404, f"no material with label {label}")
-        before = session.materials[label]
         result = None
-        if fit is not None:
-            result = run_fit(fit, before.k)
+        if fit is not None:  # the fit takes a while: outside the lock, on the K it holds now
+            result = run_fit(fit, session.materials[label].k)
             us_n_mm2, k = result["us"], result["k"]
             summary = summary_of(result)
         else:
             summary = None
-        k = before.k if k is None else k
-        if not 0.0 <= k <= 100.0:
-            raise ApiError(422, f"the fitted K = {k:.4g} is outside [0, 100], which the model "
-                                "cannot take: fit Us alone with K fixed")
-        self.set_material(session_id, label, None, {"us_n_mm2": us_n_mm2, "k": k})
-        after = session.materials[label]
-        record = {
-            "label": label, "material": after.name, "us_n_mm2": after.us_n_mm2, "k": after.k,
-            "previous": {"us_n_mm2": before.us_n_mm2, "k": before.k},
-            "fit": summary, "provenance": provenance, "applied_s": time.time(),
-        }
-        with session.lock:
+        with session.lock:  # re-entrant: set_material takes it too
+            before = session.materials[label]
+            k = before.k if k is None else k
+            if not 0.0 <= k <= 100.0:
+                raise ApiError(422, f"the fitted K = {k:.4g} is outside [0, 100], which the "
+                                    "model cannot take: fit Us alone with K fixed")
+            self.set_material(session_id, label, None, {"us_n_mm2": us_n_mm2, "k": k})
+            after = session.materials[label]
+            record = {
+                "label": label, "material": after.name, "us_n_mm2": after.us_n_mm2,
+                "k": after.k, "previous": {"us_n_mm2": before.us_n_mm2, "k": before.k},
+                "fit": summary, "provenance": provenance, "applied_s": time.time(),
+            }
             session.calibrations = {**session.calibrations, label: record}
         answer = {"label": label, "material": asdict(after), "calibration": record}
         if result is not None:

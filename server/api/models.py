@@ -185,7 +185,7 @@ Component = Literal["feed", "lateral", "normal"]
 class FitRequest(Strict):
     """Fit Us (and K) to a case table by linear least squares."""
 
-    cases: list[CaseRowBody] = Field(min_length=2, max_length=100_000)
+    cases: list[CaseRowBody] = Field(min_length=2, max_length=20_000)
     fit: Literal["us", "us,k"] = Field("us,k", description="Us alone (K held at k) or both")
     k: Finite | None = Field(None, ge=0.0, le=100.0,
                              description="K held fixed when fit = 'us' (default 1.3, or the "
@@ -215,11 +215,11 @@ class CalibrationApply(Strict):
     label: int | None = Field(None, ge=1, le=255,
                               description="the material label (default the primary material)")
     fit: FitRequest | None = None
-    us_n_mm2: Finite | None = Field(None, ge=0.0, le=1e7)
+    us_n_mm2: Finite | None = Field(None, gt=0.0, le=1e7)
     k: Finite | None = Field(None, ge=0.0, le=100.0,
                              description="with us_n_mm2: the K to set (default: keep the "
                                          "material's)")
-    provenance: dict[str, float | str | bool | list[float | str] | None] | None = Field(
+    provenance: dict[str, bool | int | float | str | list[int | float | str] | None] | None = Field(
         None, description="what to keep with the values (CI, RMSE, source), shown by GET")
 
     @field_validator("provenance")

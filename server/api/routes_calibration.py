@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 
 from ..calib.design import ModelSetup, Sensitivities
-from ..calib.fit import FitError, FitOptions, calibrate
+from ..calib.fit import FitError, FitOptions, calibrate, finite_or_none
 from ..calib.table import CaseRow, CaseTableError, row_from_mapping
 from ..model.params import THESIS_K
 from .manager import ApiError, ControlPlane
@@ -29,7 +29,8 @@ def run_fit(body: FitRequest, default_k: float = THESIS_K) -> dict:
                              k=body.k if body.k is not None else default_k,
                              components=tuple(body.components), confidence=body.confidence,
                              intervals=body.intervals)
-        return calibrate(rows, options, Sensitivities(ModelSetup(spin=body.spin))).as_dict()
+        cal = calibrate(rows, options, Sensitivities(ModelSetup(spin=body.spin)))
+        return finite_or_none(cal.as_dict())  # type: ignore[return-value]
     except (FitError, CaseTableError, ValueError) as exc:
         raise ApiError(422, str(exc)) from None
 
@@ -61,6 +62,14 @@ def apply_calibration(body: CalibrationApply, request: Request,
 
 @router.get("/sessions/{session_id}/calibration")
 def get_calibration(request: Request, session_id: int = SessionPath) -> dict:
-    """The calibrations applied to this session, by material label (latest per label)."""
+    """The calibrations applied to this session, by material label (latest per label), each
+    with the material's values now and ``in_force``: false once the material was set another
+    way (a PATCH, another calibration of its Us or K)."""
     s = _plane(request).get(session_id)
-    return {str(label): record for label, record in sorted(s.calibrations.items())}
+    out = {}
+    for label, record in sorted(s.calibrations.items()):
+        now = s.materials[label] if s.materials is not None and label in s.materials else None
+        current = None if now is None else {"us_n_mm2": now.us_n_mm2, "k": now.k}
+        out[str(label)] = {**record, "current": current, "in_force": current is not None
+                           and current == {"us_n_mm2": record["us_n_mm2"], "k": record["k"]}}
+    return out

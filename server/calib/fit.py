@@ -25,7 +25,7 @@ import numpy as np
 from scipy import stats
 
 from .design import Sensitivities
-from .table import COMPONENTS, CaseRow, case_key, group_rows
+from .table import COMPONENTS, CaseRow, group_rows
 
 DEFAULT_CONFIDENCE = 0.95
 #: Fewer replicate rows than this make a cluster-robust covariance unreliable.
@@ -216,9 +216,11 @@ def fieller(t1: float, t2: float, cov: np.ndarray, t: float) -> tuple[tuple[floa
     qa = t1 * t1 - t * t * v11
     qb = -2.0 * (t1 * t2 - t * t * v12)
     qc = t2 * t2 - t * t * v22
-    disc = qb * qb - 4.0 * qa * qc
-    if qa <= 0.0 or disc < 0.0:
+    if qa <= 0.0:
         return (-math.inf, math.inf), False
+    # With qa > 0 the discriminant is ≥ 0 in exact arithmetic (the estimate itself lies in the
+    # set); rounding can push it a hair below zero on nearly noise-free data.
+    disc = max(qb * qb - 4.0 * qa * qc, 0.0)
     root = math.sqrt(disc)
     return (float((-qb - root) / (2.0 * qa)), float((-qb + root) / (2.0 * qa))), True
 
@@ -258,7 +260,8 @@ def calibrate(rows: Sequence[CaseRow], options: FitOptions | None = None,
         per_case=_per_case(rows, predicted),
         thesis_validation=thesis_validation(rows, sens, options),
         leave_one_out=leave_one_case_out(rows, sens, options),
-        warnings=_sign_warnings(rows, predicted, options) + ([
+        warnings=_sign_warnings(rows, predicted, options) + _estimate_warnings(est, options)
+        + ([
             f"{len(rows)} rows are too few for intervals robust to replicate scatter (need "
             f"{MIN_CLUSTERS}): these assume independent observations"]
             if est.intervals != options.intervals else []),
@@ -303,6 +306,16 @@ def _sign_warnings(rows: Sequence[CaseRow], predicted: np.ndarray,
     the usual cause is a flipped axis or the force on the workpiece instead of on the burr."""
     measured = np.array([r.forces_N for r in rows])
     warnings = []
+    cols = options.columns
+    clear = np.abs(predicted[:, cols]) > 0.05 * np.abs(predicted[:, cols]).max()
+    opposed_rows = [r.source or f"row {i + 1}" for i, r in enumerate(rows)
+                    if clear[i].sum() >= 2 and (np.sign(measured[i, cols][clear[i]])
+                                                == -np.sign(predicted[i, cols][clear[i]])).all()]
+    if opposed_rows and len(opposed_rows) < len(rows):
+        shown = ", ".join(opposed_rows[:5]) + (" …" if len(opposed_rows) > 5 else "")
+        warnings.append(
+            f"{len(opposed_rows)} row(s) oppose the model in every component: {shown} — "
+            "recorded on the burr rather than the workpiece (or the reverse)?")
     for j in options.columns:
         clear = np.abs(predicted[:, j]) > 0.05 * np.abs(predicted[:, j]).max()
         if clear.sum() < 2:
@@ -313,6 +326,20 @@ def _sign_warnings(rows: Sequence[CaseRow], predicted: np.ndarray,
                 f"{COMPONENTS[j]}: {int(opposed.sum())} of {int(clear.sum())} measurements "
                 "have the opposite sign to the model — check the axis and that the forces are "
                 "on the burr (model.md)")
+    return warnings
+
+
+def _estimate_warnings(est: Estimate, options: FitOptions) -> list[str]:
+    warnings = []
+    if est.us_ci[0] <= 0.0:
+        warnings.append(
+            f"the Us interval reaches {est.us_ci[0]:.4g} ≤ 0: the data barely determine Us. "
+            "Check the axes and forces_on of every recording (a swapped axis or a replicate "
+            "of the wrong sign does this), or add cases")
+    if options.fit_k and est.k < 0.0:
+        warnings.append(
+            f"the fitted K = {est.k:.4g} is negative, which no material has (the normal force "
+            "would pull the burr in): check the normal axis's sign, or fit Us alone")
     return warnings
 
 
@@ -362,23 +389,36 @@ def leave_one_case_out(rows: Sequence[CaseRow], sens: Sensitivities,
     """Hold out each case (all its replicates) in turn, fit the rest, predict it.
 
     Holding out whole cases, not single replicates, keeps a case's other replicates from
-    vouching for it.
+    vouching for it. Each fold is the full fit's normal equations minus the held-out rows'
+    share, so the folds together cost one pass over the table.
     """
     groups = group_rows(rows)
     if len(groups) < 2:
         return {"skipped": "needs at least two cases"}
+    y, a, b = _stack(rows, sens, options.columns)
+    x = np.stack([a, b], axis=-1) if options.fit_k else (a + options.k * b)[..., None]
+    p = x.shape[-1]
+    xtx = np.einsum("rcp,rcq->pq", x, x)
+    xty = np.einsum("rcp,rc->p", x, y)
+    index = {id(r): i for i, r in enumerate(rows)}
     folds, errors, skipped = [], [], []
-    for key, held in groups.items():
-        rest = [r for r in rows if case_key(r.case) != key]
+    for held in groups.values():
+        idx = [index[id(r)] for r in held]
+        xg, yg = x[idx].reshape(-1, p), y[idx].ravel()
         c = held[0].case
         label = f"{c.orientation} {c.angle_deg:g}°"
-        try:
-            est, err = _prediction_errors(rest, held, sens, options)
-        except FitError as exc:
-            skipped.append(f"{label}: {exc}")
+        rest = xtx - xg.T @ xg
+        if len(rows) - len(idx) < 1 or np.linalg.cond(rest) > 1e12:
+            skipped.append(f"{label}: the other cases cannot determine the parameters")
             continue
+        theta = np.linalg.solve(rest, xty - xg.T @ yg)
+        if theta[0] <= 0.0:
+            skipped.append(f"{label}: the other cases give Us ≤ 0")
+            continue
+        err = yg - xg @ theta
         errors.append(err)
-        folds.append({"case": label, "us": est.us, "k": est.k,
+        k = float(theta[1] / theta[0]) if options.fit_k else options.k
+        folds.append({"case": label, "us": float(theta[0]), "k": k,
                       "rmse_N": float(np.sqrt(np.mean(err * err)))})
     if not folds:
         return {"skipped": "no fold could be fitted: " + "; ".join(skipped)}
@@ -395,3 +435,17 @@ def leave_one_case_out(rows: Sequence[CaseRow], sens: Sensitivities,
     if skipped:
         out["skipped_folds"] = skipped
     return out
+
+
+def finite_or_none(value: object) -> object:
+    """``value`` with every NaN or infinite float replaced by None, recursively: JSON has no
+    NaN (``json.dumps`` would write an invalid document)."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_none(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value

@@ -37,6 +37,7 @@ from .table import (
     CaseRow,
     CaseTableError,
     check_orientation,
+    parse_number,
     row_from_mapping,
 )
 
@@ -88,6 +89,7 @@ class RecordingReport:
 class FolderResult:
     reports: list[RecordingReport]
     failures: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def rows(self) -> list[CaseRow]:
@@ -164,15 +166,18 @@ def read_manifest(path: Path) -> dict[str, dict[str, str]]:
     if not lines:
         raise FolderError(f"{path}: empty manifest")
     delimiter = max((",", ";", "\t"), key=lines[0].count)
-    reader = csv.DictReader(lines, delimiter=delimiter)
-    fields = [f.strip().lower() for f in reader.fieldnames or []]
+    reader = csv.reader(lines, delimiter=delimiter)
+    fields = [f.strip().lower() for f in next(reader)]
     if "file" not in fields:
         raise FolderError(f"{path}: the manifest needs a 'file' column (got "
                           f"{', '.join(fields) or 'none'})")
     out: dict[str, dict[str, str]] = {}
-    for i, raw in enumerate(reader, start=2):
-        row = {k.strip().lower(): (v or "").strip() for k, v in raw.items() if k is not None}
-        name = row.get("file", "")
+    for i, cells in enumerate(reader, start=2):
+        if len(cells) != len(fields):
+            raise FolderError(f"{path} row {i}: {len(cells)} cells, the header has "
+                              f"{len(fields)}")
+        row = dict(zip(fields, (c.strip() for c in cells), strict=True))
+        name = row["file"]
         if not name:
             raise FolderError(f"{path} row {i}: no file name")
         if name in out:
@@ -190,7 +195,8 @@ def process_recording(path: Path, fields: dict[str, object],
         ValueError: (RecordingError, CaseTableError, …) naming what is wrong.
     """
     rate = fields.get("sample_rate_hz")
-    rec = load_recording(path, float(rate) if rate not in (None, "") else None)  # type: ignore[arg-type]
+    rate_hz = None if rate in (None, "") else parse_number(rate, "sample_rate_hz", path.name)
+    rec = load_recording(path, rate_hz)
     values: dict[str, object] = {k: rec.metadata.get(k) for k in (
         *GEOMETRY_COLUMNS, "forces_on", "feed_axis", "normal_axis")}
     values.update({k: v for k, v in fields.items() if v not in (None, "")})
@@ -206,10 +212,7 @@ def process_recording(path: Path, fields: dict[str, object],
     normal_axis = (parse_axis(str(values["normal_axis"]), "normal_axis")
                    if values.get("normal_axis") else np.array([0.0, 0.0, 1.0]))
     basis = component_basis(feed_axis, normal_axis)
-    try:
-        rpm = float(values["rpm"])  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise CaseTableError(f"{path.name}: rpm is not a number: {values['rpm']!r}") from None
+    rpm = parse_number(values["rpm"], "rpm", path.name)
     analysis = analyse(rec, rpm, trim_fraction=trim_fraction)
     sign = -1.0 if forces_on == "workpiece" else 1.0
     components = basis @ (sign * analysis.mean_force_N)
@@ -259,7 +262,15 @@ def process_folder(folder: str | Path, *, manifest: str | Path | None = None,
         fields: dict[str, object] = dict(entries[path.name]) if entries is not None else {}
         fields.pop("file", None)
         try:
-            result.reports.append(process_recording(path, fields, forces_on, trim_fraction))
+            report = process_recording(path, fields, forces_on, trim_fraction)
+            result.reports.append(report)
+            spindle = report.row.case.rpm / 60.0
+            found = report.analysis.dominant_frequency_hz
+            if not abs(found - spindle) <= 0.05 * spindle:
+                result.warnings.append(
+                    f"{path.name}: the dominant frequency is {found:.4g} Hz, not the spindle's "
+                    f"{spindle:.4g} Hz: its vibration amplitudes and ratio are not the drill's "
+                    "(no tone above the noise, or a wrong rpm)")
         except (ValueError, OSError) as exc:
             message = str(exc)
             result.failures.append(message if path.name in message else f"{path.name}: {message}")

@@ -224,15 +224,34 @@ def _sniff(rows: list[str], where: str) -> str | None:
     return best
 
 
-def _canonical(name: str) -> str | None:
-    """'Fx [N]', 'fx_N', 'Fx (N)' → 'fx'; 'time [s]', 't_s', 'Time' → 't'; else None."""
-    text = _UNIT.sub("", _unquote(name.strip())).strip().lower().rstrip("_ ")
-    for axis in ("fx", "fy", "fz"):
-        if text in (axis, axis + "_n"):
-            return axis
-    if text in ("t", "time", "t_s", "time_s"):
-        return "t"
-    return None
+_FORCE_UNITS = {"n": 1.0, "kn": 1e3, "mn": 1e-3}
+_TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6}
+
+
+def _canonical(name: str, where: str) -> tuple[str, float] | None:
+    """'Fx [N]', 'fx_N', 'Fx (kN)' → ('fx', 1 or 1000); 'time [ms]', 't_s', 'Time' → ('t',
+    seconds per unit); else None. A force or time column in a unit other than N/kN/mN or
+    s/ms/µs is an error, never read as newtons or seconds."""
+    text = _unquote(name.strip())
+    units = [u.strip().lower() for u in re.findall(r"\[([^\]]*)\]|\(([^)]*)\)", text)
+             for u in u if u]
+    base = _UNIT.sub("", text).strip().lower().rstrip("_ ")
+    stem, _, suffix = base.rpartition("_")
+    if stem and not units and (suffix in _FORCE_UNITS or suffix in _TIME_UNITS):
+        base, units = stem, [suffix]
+    if base in ("fx", "fy", "fz"):
+        canon, table, kind = base, _FORCE_UNITS, "force"
+    elif base in ("t", "time"):
+        canon, table, kind = "t", _TIME_UNITS, "time"
+    else:
+        return None
+    if not units:
+        return canon, 1.0
+    unit = units[-1]
+    if unit not in table:
+        raise RecordingError(f"{where}: column {name.strip()!r}: unknown {kind} unit {unit!r} "
+                             f"(known: {', '.join(table)})")
+    return canon, table[unit]
 
 
 def _read_csv(path: Path, sample_rate_hz: float | None) -> Recording:
@@ -279,13 +298,15 @@ def _read_csv(path: Path, sample_rate_hz: float | None) -> Recording:
     decimal_comma = delimiter != ","
     first_line, first = data[0]
     cells = _split(first, delimiter)
+    unit_scale: dict[str, float] = {}
     numeric = sum(_number(c, decimal_comma) is not None for c in cells)
     if numeric * 2 < len(cells):  # mostly words: a header
-        names = [_canonical(c) for c in cells]
+        parsed = [_canonical(c, f"{where}: line {first_line}") for c in cells]
         columns: dict[str, int] = {}
-        for i, name in enumerate(names):
-            if name is None:
+        for i, entry in enumerate(parsed):
+            if entry is None:
                 continue
+            name, unit_scale[name] = entry
             if name in columns:
                 raise RecordingError(f"{where}: line {first_line}: columns {columns[name] + 1} "
                                      f"and {i + 1} are both {name!r}")
@@ -340,6 +361,8 @@ def _read_csv(path: Path, sample_rate_hz: float | None) -> Recording:
     if len(values) < MIN_SAMPLES:
         raise RecordingError(f"{where}: {len(values)} data rows; at least {MIN_SAMPLES} are "
                              "needed")
+    for c, (name, _) in enumerate(wanted):  # to N and s
+        values[:, c] *= unit_scale.get(name, 1.0)
     file_what = "its '# sample_rate_hz' line"
     if "t" in columns:
         from_times = _rate_from_times(values[:, 0], where, place)
@@ -492,6 +515,10 @@ def _write_atomic(path: Path, write: Callable[[object], object]) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             write(handle)
+        # mkstemp makes the file private; a recording is data to share, so the umask decides.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

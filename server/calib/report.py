@@ -96,6 +96,8 @@ def format_recordings(result: FolderResult) -> str:
             f"{v['g']:.3g}; burring/free ratio {v['ratio_fit_mean']:.3f} (fit), "
             f"{v['ratio_peaks_mean']:.3f} (peaks); dominant frequency "
             f"{v['frequency_hz_mean']:.1f} Hz")
+    for w in result.warnings:
+        lines.append(f"warning: {w}")
     for f in result.failures:
         lines.append(f"skipped: {f}")
     return "\n".join(lines)

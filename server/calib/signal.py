@@ -437,10 +437,12 @@ def find_segments(force_N: np.ndarray, sample_rate_hz: float, spindle_hz: float 
         raise AnalysisError(
             f"no burring found: the largest shift of the smoothed force, {shift:.3g} N, is not "
             f"clearly above its free-spinning noise (σ = {noise:.3g} N; needs "
-            f"{NOISE_FACTOR:g}σ)")
+            f"{NOISE_FACTOR:g}σ) — or the recording has no free spinning to compare with: it "
+            "must start and end with the drill spinning free")
 
-    h = (width - 1) // 2
-    start, stop = run[0] + h, run[1] + h
+    # Smoothed j is centred on raw j + (width − 1)/2: the half-height crossings of a step fall
+    # at raw run[0] + (width − 1)//2 going up and run[1] + width//2 coming down.
+    start, stop = run[0] + (width - 1) // 2, run[1] + width // 2
     if (stop - start) / sample_rate_hz < min_burring_s:
         raise AnalysisError(f"burring lasts {(stop - start) / sample_rate_hz:.3g} s (samples "
                             f"{start}–{stop}), shorter than min_burring_s = {min_burring_s:g} s")

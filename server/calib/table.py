@@ -79,7 +79,7 @@ def row_from_mapping(values: dict[str, object], where: str) -> CaseRow:
     if missing:
         raise CaseTableError(f"{where}: missing {', '.join(missing)}")
     orientation = check_orientation(values["orientation"], where)
-    numbers = {c: _number(values[c], c, where) for c in COLUMNS[1:]}
+    numbers = {c: parse_number(values[c], c, where) for c in COLUMNS[1:]}
     for c in FORCE_COLUMNS:
         if abs(numbers[c]) > MAX_FORCE_N:
             raise CaseTableError(f"{where}: {c} = {numbers[c]:g} N is beyond ±{MAX_FORCE_N:g} N")
@@ -105,9 +105,14 @@ def check_orientation(value: object, where: str) -> str:
     return orientation
 
 
-def _number(value: object, column: str, where: str) -> float:
+def parse_number(value: object, column: str, where: str) -> float:
+    """A finite float from a cell (a decimal comma accepted); CaseTableError naming ``where``
+    and ``column`` otherwise."""
+    text = value.strip() if isinstance(value, str) else value
+    if isinstance(text, str) and "," in text and "." not in text:
+        text = text.replace(",", ".")  # a decimal comma (the file is ;- or tab-separated)
     try:
-        number = float(value)  # type: ignore[arg-type]
+        number = float(text)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         raise CaseTableError(f"{where}: {column} is not a number: {value!r}") from None
     if not math.isfinite(number):
