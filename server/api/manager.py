@@ -15,7 +15,6 @@ import secrets
 import shutil
 import threading
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -27,7 +26,6 @@ from ..bone import Bone, Material, MaterialTable, ShaftParams
 from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError, save_bone
 from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
-from ..calib.fit import summary_of
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 from ..model.params import CuttingParams
@@ -481,11 +479,8 @@ class ControlPlane:
                 raise
         return session
 
-    def apply_calibration(self, session_id: int, label: int | None, fit: object | None,
-                          us_n_mm2: float | None, k: float | None, provenance: dict | None,
-                          run_fit: Callable[..., dict]) -> dict:
-        """Set material ``label``'s (default the primary's) Us and K from a fit made here
-        (``run_fit(fit, default_k)``) or from values fitted elsewhere, and keep a record."""
+    def calibration_target(self, session_id: int, label: int | None) -> tuple[int, Material]:
+        """The material a calibration would set: ``label``, default the primary."""
         session = self.ready(session_id)
         label = session.primary_label if label is None else label
         if label is None:
@@ -493,14 +488,15 @@ class ControlPlane:
         assert session.materials is not None
         if label not in session.materials:
             raise ApiError(404, f"no material with label {label}")
-        result = None
-        if fit is not None:  # the fit takes a while: outside the lock, on the K it holds now
-            result = run_fit(fit, session.materials[label].k)
-            us_n_mm2, k = result["us"], result["k"]
-            summary = summary_of(result)
-        else:
-            summary = None
+        return label, session.materials[label]
+
+    def apply_calibration(self, session_id: int, label: int, us_n_mm2: float,
+                          k: float | None, fit: dict | None, provenance: dict | None) -> dict:
+        """Set material ``label``'s Us and K (None: keep its K) and keep a record of it with
+        the fit's summary (``fit``) or the caller's ``provenance``."""
+        session = self.ready(session_id)
         with session.lock:  # re-entrant: set_material takes it too
+            assert session.materials is not None
             before = session.materials[label]
             k = before.k if k is None else k
             if not 0.0 <= k <= 100.0:
@@ -511,13 +507,10 @@ class ControlPlane:
             record = {
                 "label": label, "material": after.name, "us_n_mm2": after.us_n_mm2,
                 "k": after.k, "previous": {"us_n_mm2": before.us_n_mm2, "k": before.k},
-                "fit": summary, "provenance": provenance, "applied_s": time.time(),
+                "fit": fit, "provenance": provenance, "applied_s": time.time(),
             }
             session.calibrations = {**session.calibrations, label: record}
-        answer = {"label": label, "material": asdict(after), "calibration": record}
-        if result is not None:
-            answer["result"] = result
-        return answer
+        return {"label": label, "material": asdict(after), "calibration": record}
 
     def _push(self, session: ManagedSession, materials: bool = False) -> None:
         """Send the loop what differs from what it has (if the session runs there): a Us

@@ -5,18 +5,14 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 
 from ..calib.design import ModelSetup, Sensitivities
-from ..calib.fit import FitError, FitOptions, calibrate, finite_or_none
+from ..calib.fit import FitError, FitOptions, calibrate, finite_or_none, summary_of
 from ..calib.table import CaseRow, CaseTableError, row_from_mapping
 from ..model.params import THESIS_K
-from .manager import ApiError, ControlPlane
+from .manager import ApiError
 from .models import CalibrationApply, FitRequest
-from .routes_sessions import SessionPath
+from .routes_sessions import SessionPath, _plane
 
 router = APIRouter(tags=["calibration"])
-
-
-def _plane(request: Request) -> ControlPlane:
-    return request.app.state.plane
 
 
 def run_fit(body: FitRequest, default_k: float = THESIS_K) -> dict:
@@ -56,8 +52,14 @@ def apply_calibration(body: CalibrationApply, request: Request,
     if body.fit is not None and body.k is not None:
         raise ApiError(422, "k goes inside fit (held fixed when fit.fit = 'us'); with a fit, "
                             "the applied K is the fit's")
-    return plane.apply_calibration(session_id, body.label, body.fit, body.us_n_mm2, body.k,
-                                   body.provenance, run_fit)
+    label, material = plane.calibration_target(session_id, body.label)
+    if body.fit is None:
+        return plane.apply_calibration(session_id, label, body.us_n_mm2, body.k, None,
+                                       body.provenance)
+    result = run_fit(body.fit, material.k)  # fit="us" holds the material's K
+    answer = plane.apply_calibration(session_id, label, result["us"], result["k"],
+                                     summary_of(result), body.provenance)
+    return {**answer, "result": result}
 
 
 @router.get("/sessions/{session_id}/calibration")

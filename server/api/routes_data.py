@@ -22,17 +22,12 @@ from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
 from .manager import ApiError, ControlPlane
 from .models import RecordingStart, RestoreRequest, SnapshotRequest
-from .routes_sessions import wait_for
+from .routes_sessions import SessionPath, _plane, wait_for
 from .sources import snapshot_path
 
 router = APIRouter()
-SessionPath = Path(ge=0, le=(1 << 32) - 1, description="session id")
 UPLOAD_SUFFIX = re.compile(r"(\.bone\.npz|\.seg\.nrrd|\.nii\.gz|\.[A-Za-z0-9]{1,5})$")
 DELTA_MEDIA_TYPE = "application/x-msgpack"
-
-
-def _plane(request: Request) -> ControlPlane:
-    return request.app.state.plane
 
 
 # -- bones ------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -278,7 +278,3 @@ def process_folder(folder: str | Path, *, manifest: str | Path | None = None,
         raise FolderError(f"{len(result.failures)} of {len(files)} recording(s) failed:\n  "
                           + "\n  ".join(result.failures))
     return result
-
-
-def reports_as_dicts(reports: Sequence[RecordingReport]) -> list[dict]:
-    return [r.as_dict() for r in reports]
