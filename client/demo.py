@@ -245,7 +245,7 @@ def plot(run: DemoRun, path: Path) -> Path:
 
 # -- the command --------------------------------------------------------------------------------
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from ..server.cli_args import float_in, int_in
+    from ..server.cli.args import float_in, int_in
 
     p = sub.add_parser("client", help="talk to a running server over UDP")
     client_sub = p.add_subparsers(dest="client", metavar="COMMAND", required=True)

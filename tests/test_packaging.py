@@ -25,7 +25,7 @@ def test_non_editable_wheel_has_the_namespace_layout(tmp_path):
     wheel = next(tmp_path.glob("burrforce-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     for expected in ("burrforce/server/__init__.py", "burrforce/server/model/kernels.py",
-                     "burrforce/server/cli.py", "burrforce/client/__init__.py",
+                     "burrforce/server/cli/__init__.py", "burrforce/client/__init__.py",
                      "burrforce/proto/__init__.py"):
         assert expected in names
     assert not any(n.startswith(("server/", "client/", "proto/", "tests/")) for n in names)

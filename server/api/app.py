@@ -22,7 +22,7 @@ _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` 
 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
-    from . import routes_calibration, routes_data, routes_sessions
+    from . import routes_calibration, routes_data, routes_devices, routes_sessions
 
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
@@ -73,7 +73,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
                 if plane.hot.address else None,
                 "packets_received": latest["counters"]["received"] if latest else None}
 
-    reg = registry(stats)
+    reg = registry(stats, getattr(plane, "devices", None))
 
     @app.get("/metrics", tags=["system"], dependencies=[Depends(authorize)],
              response_class=Response)
@@ -87,5 +87,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     app.include_router(routes_data.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     app.include_router(routes_calibration.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    app.include_router(routes_devices.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     return app

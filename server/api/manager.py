@@ -168,6 +168,10 @@ class ControlPlane:
         self._lock = threading.RLock()
         self._loads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="burrforce-load")
         self._file_counter = 0
+        from .devices import DeviceAttachments  # (it imports this module)
+
+        #: Local haptic devices driven from sessions (``routes_devices``).
+        self.devices = DeviceAttachments()
 
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, session_id: int | None, bone: BoneSource, params: Parameters,
@@ -217,6 +221,7 @@ class ControlPlane:
 
     def delete_session(self, session_id: int) -> None:
         session = self.get(session_id)
+        self.devices.discard(session_id)  # its device is zeroed before the session goes
         with session.lock:
             self._stop_recording(session)
             with self._lock:
@@ -648,6 +653,7 @@ class ControlPlane:
         """Stop recordings, forget sessions, remove the shared bones (the caller stops the
         loop)."""
         self._loads.shutdown(wait=False, cancel_futures=True)
+        self.devices.close()
         for session in list(self.sessions.values()):
             try:
                 with session.lock:

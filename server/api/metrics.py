@@ -143,8 +143,42 @@ class LoopStats:
         yield up
 
 
-def registry(stats: LoopStats) -> CollectorRegistry:
+class DeviceCollector:
+    """Prometheus metrics of the device loops (``plane.devices``), read at scrape time from
+    their shared statistics."""
+
+    def __init__(self, devices) -> None:
+        self.devices = devices
+
+    def collect(self):
+        statuses = self.devices.statuses()
+        counters = CounterMetricFamily(
+            "burrforce_device", "Device loop counters (cycles, overruns, saturations, "
+            "watchdog_trips, poses_sent, replies, error_replies, notices, refused, "
+            "passivity_cycles)", labels=["session", "device", "counter"])
+        rate = GaugeMetricFamily("burrforce_device_servo_rate_hz", "Measured servo rate",
+                                 labels=["session", "device"])
+        period = GaugeMetricFamily("burrforce_device_period_seconds", "Servo period "
+                                   "percentiles", labels=["session", "device", "quantile"])
+        live = GaugeMetricFamily("burrforce_device_live", "1 while a fresh coupling model is "
+                                 "rendered (0: the watchdog holds zero force)",
+                                 labels=["session", "device"])
+        for sid, s in sorted(statuses.items()):
+            labels = [str(sid), s["device"].partition(":")[0]]
+            for name, value in s["counters"].items():
+                counters.add_metric([*labels, name], value)
+            rate.add_metric(labels, s["servo_rate_hz"] or 0.0)
+            for q, key in (("0.5", "period_p50_us"), ("0.99", "period_p99_us")):
+                if s[key] is not None:
+                    period.add_metric([*labels, q], s[key] * 1e-6)
+            live.add_metric(labels, 1.0 if s["live"] else 0.0)
+        yield from (counters, rate, period, live)
+
+
+def registry(stats: LoopStats, devices=None) -> CollectorRegistry:
     reg = CollectorRegistry(auto_describe=True)
     reg.register(stats)
+    if devices is not None:
+        reg.register(DeviceCollector(devices))
     return reg
 

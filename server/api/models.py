@@ -228,3 +228,37 @@ class CalibrationApply(Strict):
         if value is not None and len(value) > 64:
             raise ValueError("provenance holds at most 64 entries")
         return value
+
+
+class DeviceAttach(Strict):
+    """A haptic device (and optionally a vibration actuator) to drive from a session, on the
+    server's machine (docs/devices.md)."""
+
+    device: str = Field(..., min_length=1, max_length=512, examples=[
+        "falcon:firmware=/opt/novint/nvent_firmware.bin", "sim:hand=groove", "forcedimension"],
+        description="NAME[:key=value,...]: sim, falcon, forcedimension, openhaptics, haply")
+    actuator: str | None = Field(None, max_length=512, examples=["audio", "wav:path=cue.wav"],
+                                 description="NAME[:key=value,...]: audio, usb, wav")
+    placement_mm: Vec3 | None = Field(
+        None, description="where the device's workspace centre lies in the bone's frame, mm "
+                          "(default: the top centre of the bone's bounding box)")
+    rotation: Quat = Field((0.0, 0.0, 0.0, 1.0),
+                           description="the device frame's orientation in the bone's frame")
+    workspace_scale: float = Field(1.0, ge=0.01, le=100.0,
+                                   description="bone mm per device mm")
+    rpm: float = Field(60_000.0, ge=-1e6, le=1e6, allow_inf_nan=False,
+                       description="spindle speed sent with each pose")
+    spindle: Literal["on", "off", "button"] = Field(
+        "on", description="on, off, or on while the device's first button is held")
+    home: bool = Field(True, description="home the device before streaming")
+    stale_ms: float = Field(30.0, gt=0.0, le=50.0,
+                            description="the watchdog: zero force when the newest reply is "
+                                        "older than this")
+
+    @field_validator("rotation")
+    @classmethod
+    def _unit(cls, q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        n = math.sqrt(sum(c * c for c in q))
+        if not 0.5 <= n <= 1.5:
+            raise ValueError(f"rotation must be a unit quaternion (norm {n:.3g})")
+        return q

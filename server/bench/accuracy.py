@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli_args import float_in
+from ..cli.args import float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case

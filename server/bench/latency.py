@@ -40,7 +40,7 @@ import numpy as np
 from ...proto.codec import decode_server_message, encode_pose
 from ...proto.messages import FLAG_NEW_STREAM, FLAG_RESET_VELOCITY, STATUS_CUTTING, Pose
 from ...proto.tag import Tagger, new_key
-from ..cli_args import float_in, int_in
+from ..cli.args import float_in, int_in
 from .timing import machine_line
 
 MODES = ("echo", "overhead", "cutting", "minimal")

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli_args import int_in
+from ..cli.args import int_in
 from .timing import machine_line
 
 #: The formats timed: keys of bone_files.FORMAT_WRITERS.

@@ -9,14 +9,18 @@ from its seed whatever the machine's load.
 
 The loop (``stability_sim``):
 
-- **Device** (per profile): a point mass (``sim_mass_kg`` + a 0.1 kg grip) with viscous
-  friction ``sim_damping_N_s_mm``, integrated by semi-implicit Euler with at least 10 substeps
-  per packet interval and none longer than 0.1 ms. It feels the last good reply's ``force``
-  held from that reply's (simulated) arrival on; an error reply means zero force; no good
-  reply for 50 ms means zero force (SPEC 7.6); an older reply than one already used is
-  ignored (SPEC 5.1). Coupled replies are rendered the same way (their ``force`` held; the
-  coupling fields are not re-rendered at a servo rate). The encoder quantizes each axis to the
-  profile's ``resolution_mm`` (the position sent); the energy uses the true state.
+- **Device** (per profile, ``devices.sim``): a point mass (``sim_mass_kg`` + a 0.1 kg grip)
+  with viscous friction ``sim_damping_N_s_mm``, integrated by semi-implicit Euler with at
+  least 10 substeps per packet interval and none longer than 0.1 ms. The encoder quantizes each
+  axis to the profile's ``resolution_mm`` (the position sent); the energy uses the true state.
+  Raw replies: the device feels the last good reply's ``force`` held from that reply's
+  (simulated) arrival on; an error reply means zero force; no good reply for 50 ms means zero
+  force (SPEC 7.6); an older reply than one already used is ignored (SPEC 5.1). Coupled
+  replies go through the device loop's renderer (``devices.render``, ``--render servo``, the
+  default): every servo tick (1/``rated_hz``) it reads the encoder, estimates the velocity
+  (FOAW) and renders the newest coupling model, extrapolated, delay-limited, with a passivity
+  controller and a 30 ms watchdog; ``--render hold`` holds each coupled reply's ``force``
+  instead, as the bench did before the device loop existed.
 - **Hand**: a spring-damper (0.3 N/mm, 0.003 N·s/mm) pulling the device toward a target:
   above the block at x = 3 mm, down in 0.2 s until the burr centre is 1 mm below the top
   face (the burr's bottom 3 mm deep, so the hand presses with up to 0.9 N), then along +x
@@ -83,7 +87,7 @@ from pathlib import Path
 
 from ...proto.tag import new_key
 from ..haptics.profiles import PROFILES
-from .stability_sim import Link, Scenario, simulate
+from .stability_sim import RENDERS, Link, Scenario, simulate
 from .timing import machine_line
 
 MODES = ("raw", "coupled")
@@ -142,8 +146,9 @@ def quick_cases() -> list[Scenario]:
 
 
 def run(profiles: list[str], cases: list[Scenario], seed: int = DEFAULT_SEED,
-        modes: tuple[str, ...] = MODES, progress=None) -> list[dict]:
-    """Every profile × mode × case, each on a fresh session of one hot-loop process."""
+        modes: tuple[str, ...] = MODES, progress=None, render: str = "servo") -> list[dict]:
+    """Every profile × mode × case, each on a fresh session of one hot-loop process;
+    ``render`` says how coupled replies reach the device (``stability_sim.RENDERS``)."""
     from ..bone.materials import CORTICAL, CORTICAL_LABEL, Material, MaterialTable
     from ..haptics import HapticsConfig
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
@@ -174,7 +179,7 @@ def run(profiles: list[str], cases: list[Scenario], seed: int = DEFAULT_SEED,
                     hot.call("add_session", spec=spec)
                     try:
                         row = simulate(link, session_id, profile, mode, sc, seed,
-                                       ENERGY_TOL_J, OSC_FRACTION)
+                                       ENERGY_TOL_J, OSC_FRACTION, render=render)
                     finally:
                         hot.call("remove_session", session_id=session_id)
                     rows.append(row)
@@ -260,9 +265,10 @@ def write_results(rows: list[dict], settings: dict, out: Path) -> tuple[Path, Pa
         "# Closed-loop stability (`burrforce bench stability`)",
         "",
         f"{stamp}; {machine_line()}. {len(rows)} runs in {settings['wall_s']:.0f} s "
-        f"(seed {settings['seed']}). Real hot loop, real UDP and codec; simulated device, "
-        "hand and network in simulated time (method and tolerances: the module docstring of "
-        "`server/bench/stability.py`). Each run: the thesis's groove on the workpiece "
+        f"(seed {settings['seed']}; coupled replies rendered by "
+        f"`{settings.get('render', 'hold')}`). Real hot loop, real UDP and codec; simulated "
+        "device, hand and network in simulated time (method and tolerances: the module "
+        "docstring of `server/bench/stability.py`). Each run: the thesis's groove on the workpiece "
         f"phantom ({VOXEL_MM:g} mm voxels), a fresh session, "
         f"{BASE.duration_s:g} s simulated. Stable = no non-finite value, no limit violation, "
         f"energy generated ≤ {ENERGY_TOL_J * 1e3:g} mJ, oscillation RMS ≤ "
@@ -353,6 +359,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="print the rows as JSON on stdout (progress goes to stderr)")
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
                    help="results directory. Default ./benchmarks")
+    p.add_argument("--render", choices=RENDERS, default="servo",
+                   help="how the device renders coupled replies: servo = the device loop's "
+                        "servo-rate re-rendering of the coupling model (devices.render), hold "
+                        "= each reply's force held until the next (the behaviour before the "
+                        "device loop). Default servo")
     p.set_defaults(func=main)
 
 
@@ -362,10 +373,11 @@ def main(args: argparse.Namespace) -> int:
 
     cases = quick_cases() if args.quick else sweep_cases()
     t0 = time.perf_counter()
-    rows = run(args.profiles, cases, args.seed, progress=say)
+    rows = run(args.profiles, cases, args.seed, progress=say, render=args.render)
     wall = time.perf_counter() - t0
     if not args.quick:
-        settings = {"seed": args.seed, "wall_s": wall, "energy_tol_J": ENERGY_TOL_J,
+        settings = {"seed": args.seed, "render": args.render, "wall_s": wall,
+                    "energy_tol_J": ENERGY_TOL_J,
                     "oscillation_fraction": OSC_FRACTION, "voxel_mm": VOXEL_MM,
                     "profiles": args.profiles}
         md, js, png = write_results(rows, settings, args.out)

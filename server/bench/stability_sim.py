@@ -21,6 +21,8 @@ import numpy as np
 from ...proto.codec import decode_server_message, encode_pose
 from ...proto.messages import FLAG_NEW_STREAM, OK, STATUS_CLAMPED, STATUS_CUTTING, Pose, Reply
 from ...proto.tag import Tagger
+from ..devices.render import CouplingRenderer
+from ..devices.sim import DeviceVelocity, SimMechanism
 from ..haptics.profiles import DeviceProfile
 
 # -- the scene: the thesis's groove on the workpiece block (bone.phantoms) -------------------
@@ -31,10 +33,7 @@ GRID_X_MAX_MM = 29.0  # the block plus its 3 mm margin of air: the grid ends her
 #: Where the device's workspace centre lies in the server frame (the block's top centre).
 WORKSPACE_CENTRE_MM = (13.0, 0.0, 0.0)
 
-# -- the hand: a spring-damper pulling the device toward the target path ----------------------
-HAND_K_N_MM = 0.3
-HAND_B_N_S_MM = 0.003
-GRIP_KG = 0.1
+# -- the hand: a spring-damper (devices.sim) pulling the device toward the target path --------
 #: The path: above the bone at x = 3 mm, down in APPROACH_S until the burr centre is
 #: CENTRE_DEPTH_MM below the top face (the burr's bottom 3 mm deep: the hand presses, with up to
 #: 0.9 N), then along +x at the feed speed until X_END_MM, then held there.
@@ -67,6 +66,11 @@ REPLY_TIMEOUT_S = 1.0
 #: MAX_SUBSTEP_S (also the sampling of the applied force for the oscillation measure).
 MIN_SUBSTEPS = 10
 MAX_SUBSTEP_S = 1e-4
+#: Coupled output: how the device renders replies. ``servo``: the device loop's renderer
+#: (devices.render) re-renders the newest coupling model every servo tick (1/rated_hz);
+#: ``hold``: each reply's force held until the next (what the bench measured before the
+#: device loop existed).
+RENDERS = ("servo", "hold")
 #: The oscillation measure: the applied force minus its moving average over this window.
 OSC_WINDOW_S = 0.025
 OSC_SAMPLE_S = 1e-4
@@ -243,10 +247,14 @@ def run_seed(seed: int, profile: str, mode: str, sc: Scenario) -> int:
 # -- one run ----------------------------------------------------------------------------------
 def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc: Scenario,
              seed: int, energy_tol_J: float, osc_fraction: float,
-             force_rel_tol: float = 1e-9, force_abs_tol_N: float = 1e-9) -> dict:
-    """One closed-loop run against session ``session_id`` (fresh, this profile and mode).
+             force_rel_tol: float = 1e-9, force_abs_tol_N: float = 1e-9,
+             render: str = "servo") -> dict:
+    """One closed-loop run against session ``session_id`` (fresh, this profile and mode);
+    ``render`` (RENDERS) says how a coupled output reaches the device.
 
     Returns the row dict (``bench.stability`` documents the keys)."""
+    if render not in RENDERS:
+        raise ValueError(f"render must be one of {RENDERS}, got {render!r}")
     rng = np.random.default_rng(run_seed(seed, profile.name, mode, sc))
     wall0 = time.perf_counter()
     path = TargetPath(sc)
@@ -256,9 +264,6 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
     dt = sc.dt_ms * 1e-3
     jitter = sc.jitter_ms * 1e-3
     delay = sc.delay_ms * 1e-3
-    mass = (profile.sim_mass_kg + GRIP_KG) * 1e-3  # N·s²/mm
-    friction = profile.sim_damping_N_s_mm
-    res = profile.resolution_mm
     half_ws = profile.sim_workspace_mm
     cx, cy, cz = WORKSPACE_CENTRE_MM
     max_f = profile.max_force_N
@@ -266,18 +271,23 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
     k_ok = profile.max_stiffness_N_mm * (1.0 + force_rel_tol)
     b_ok = profile.max_damping_N_s_mm * (1.0 + force_rel_tol)
     coupled = mode == "coupled"
+    servo = coupled and render == "servo"
+    renderer = CouplingRenderer(profile) if servo else None
+    velocity = DeviceVelocity(profile.resolution_mm)
+    servo_period = 1.0 / profile.rated_hz
+    next_servo = 0.0
+    f_servo = (0.0, 0.0, 0.0)
 
     # Device state (server frame, mm, mm/s).
-    x = list(path.start())
-    v = [0.0, 0.0, 0.0]
+    mech = SimMechanism(profile, path.start())
+    x, v = mech.x, mech.v
     t = 0.0
-    energy = 0.0  # ∫ F_applied · v dt, N·mm
-    energy_max = 0.0
+    energy_max = 0.0  # of ∫ F_applied · v dt, N·mm (mech.work_mJ)
     f_hold = (0.0, 0.0, 0.0)
     newest_used = -1  # seq of the newest reply applied
     last_good_arrival = -math.inf
     first_arrival = math.inf
-    pending: list[tuple[float, int, tuple[float, float, float]]] = []  # (arrival, seq, force)
+    pending: list[tuple[float, int, Reply | None]] = []  # (arrival, seq, good reply or None)
     f_t: list[float] = []
     f_xyz: list[tuple[float, float, float]] = []
 
@@ -300,50 +310,52 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
     stopped = False
 
     def advance(t_to: float) -> None:
-        """Integrate the device from t to t_to under the held force, the hand and friction."""
-        nonlocal t, energy, energy_max, f_hold, newest_used, last_good_arrival, max_depth
-        nonlocal left_workspace
+        """Integrate the device from t to t_to under the rendered force, the hand and friction."""
+        nonlocal t, energy_max, f_hold, newest_used, last_good_arrival, max_depth
+        nonlocal left_workspace, next_servo, f_servo
         span = t_to - t
         if span <= 0.0:
             return
         n = max(MIN_SUBSTEPS, math.ceil(span / MAX_SUBSTEP_S - 1e-9))
         h = span / n
-        x0, x1, x2 = x
-        v0, v1, v2 = v
         for i in range(n):
             ts = t + i * h
             while pending and pending[0][0] <= ts:
-                _, s, f = pending.pop(0)
+                _, s, msg = pending.pop(0)
                 if s > newest_used:
                     newest_used = s
-                    f_hold = f
-                    if f is not None:
-                        last_good_arrival = ts
-            if f_hold is None or ts - last_good_arrival > STALE_FORCE_S:
-                fa0 = fa1 = fa2 = 0.0
+                    if renderer is not None:
+                        if msg is None:
+                            renderer.drop()
+                        else:
+                            renderer.accept(msg.t_client_us * 1e-6, ts, msg.proxy_position,
+                                            msg.proxy_velocity, msg.coupling_stiffness,
+                                            msg.coupling_damping, msg.force)
+                    else:
+                        f_hold = None if msg is None else tuple(msg.force)
+                        if msg is not None:
+                            last_good_arrival = ts
+            if renderer is not None:
+                if ts >= next_servo - 1e-12:  # a servo tick: read the encoder, render
+                    reading = mech.reading()
+                    f = renderer.render(np.array(reading), velocity.update(reading, ts), ts)
+                    f_servo = (float(f[0]), float(f[1]), float(f[2]))
+                    while next_servo <= ts + 1e-12:
+                        next_servo += servo_period
+                fa = f_servo
+            elif f_hold is None or ts - last_good_arrival > STALE_FORCE_S:
+                fa = (0.0, 0.0, 0.0)
             else:
-                fa0, fa1, fa2 = f_hold
+                fa = f_hold
             f_t.append(ts)
-            f_xyz.append((fa0, fa1, fa2))
+            f_xyz.append(fa)
             p0, p1, p2, u0, u1, u2 = path.at(ts)
-            a0 = (fa0 + HAND_K_N_MM * (p0 - x0) + HAND_B_N_S_MM * (u0 - v0) - friction * v0) / mass
-            a1 = (fa1 + HAND_K_N_MM * (p1 - x1) + HAND_B_N_S_MM * (u1 - v1) - friction * v1) / mass
-            a2 = (fa2 + HAND_K_N_MM * (p2 - x2) + HAND_B_N_S_MM * (u2 - v2) - friction * v2) / mass
-            v0 += a0 * h
-            v1 += a1 * h
-            v2 += a2 * h
-            d0, d1, d2 = v0 * h, v1 * h, v2 * h
-            energy += fa0 * d0 + fa1 * d1 + fa2 * d2
-            if energy > energy_max:
-                energy_max = energy
-            x0 += d0
-            x1 += d1
-            x2 += d2
-        x[:] = [x0, x1, x2]
-        v[:] = [v0, v1, v2]
+            mech.step(fa, (p0, p1, p2), (u0, u1, u2), h)
+            if mech.work_mJ > energy_max:
+                energy_max = mech.work_mJ
         t = t_to
-        max_depth = max(max_depth, TOP_Z_MM - (x2 - RADIUS_MM))
-        if max(abs(x0 - cx), abs(x1 - cy), abs(x2 - cz)) > half_ws:
+        max_depth = max(max_depth, TOP_Z_MM - (x[2] - RADIUS_MM))
+        if max(abs(x[0] - cx), abs(x[1] - cy), abs(x[2] - cz)) > half_ws:
             left_workspace = True
 
     def check(msg) -> None:
@@ -406,8 +418,7 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
             position = (math.nan, math.nan, math.nan)
             counts["nan_poses"] += 1
         else:
-            position = (cx + round((x[0] - cx) / res) * res, cy + round((x[1] - cy) / res) * res,
-                        cz + round((x[2] - cz) / res) * res)
+            position = mech.reading()
         flags = FLAG_NEW_STREAM if first_arrival > t_sample else 0
         data = encode_pose(Pose(session_id, seq, t_us, position, q, rpm, spindle_on, None,
                                 flags), link.tagger)
@@ -448,8 +459,7 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
             arrival = t_sample + delay + (rng.uniform(0.0, jitter) if jitter > 0 else 0.0)
             first_arrival = min(first_arrival, arrival)
             good = isinstance(msg, Reply) and msg.error == OK
-            force = tuple(msg.force) if good else None
-            pending.append((arrival, msg.seq, force))
+            pending.append((arrival, msg.seq, msg if good else None))
         pending.sort(key=lambda p: p[0])
     if not stopped:
         advance(sc.duration_s)
@@ -474,6 +484,7 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
     row = {
         "profile": profile.name,
         "mode": mode,
+        "render": render if coupled else "hold",
         "case": sc.case,
         "value": sc.value,
         "nonfinite": counts["nonfinite"],

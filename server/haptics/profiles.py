@@ -84,6 +84,12 @@ PROFILES: dict[str, DeviceProfile] = {
         DeviceProfile("omega3", max_force_N=12.0, max_stiffness_N_mm=5.0,
                       max_damping_N_s_mm=0.030, max_slew_N_s=4000.0, resolution_mm=0.01,
                       sim_mass_kg=0.20, sim_damping_N_s_mm=0.0005, sim_workspace_mm=80.0),
+        # Haply Inverse3: force, stiffness, damping and workspace as CHAI3D's Haply port
+        # renders it (Haply publishes no datasheet figures for them); slew and resolution
+        # are the generic profile's.
+        DeviceProfile("inverse3", max_force_N=10.0, max_stiffness_N_mm=1.0,
+                      max_damping_N_s_mm=0.006, max_slew_N_s=2000.0, resolution_mm=0.02,
+                      sim_mass_kg=0.20, sim_damping_N_s_mm=0.0002, sim_workspace_mm=150.0),
     )
 }
 #: Named profiles plus ``custom`` (a named one with some limits changed).

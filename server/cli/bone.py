@@ -7,10 +7,10 @@ import json
 import sys
 from pathlib import Path
 
-from .bone.bone import Bone
-from .bone.loaders import FORMATS, LoadOptions, load_bone, save_bone
-from .bone.loaders.volume import KINDS
-from .bone.material_map import MaterialMap
+from ..bone.bone import Bone
+from ..bone.loaders import FORMATS, LoadOptions, load_bone, save_bone
+from ..bone.loaders.volume import KINDS
+from ..bone.material_map import MaterialMap
 
 PHANTOM_PREFIX = "phantom:"
 
@@ -29,7 +29,7 @@ def _triple(text: str) -> tuple[float, float, float]:
 
 
 def _add_load_options(p: argparse.ArgumentParser) -> None:
-    from .bone.phantoms import PHANTOMS
+    from ..bone.phantoms import PHANTOMS
 
     p.add_argument("path", metavar="PATH",
                    help=f"a bone file or folder ({', '.join(FORMATS)}), or "
@@ -77,7 +77,7 @@ def load_from_args(args: argparse.Namespace) -> Bone:
     """Load the bone the arguments name, with a progress bar on a terminal."""
     text = str(args.path)
     if text.startswith(PHANTOM_PREFIX):
-        from .bone.phantoms import phantom
+        from ..bone.phantoms import phantom
         file_options = [flag for flag, value, default in (
             ("--kind", args.kind, "auto"), ("--spacing-mm", args.spacing_mm, None),
             ("--origin-mm", args.origin_mm, None), ("--materials", args.materials, None),

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .cli_args import float_in
+from .args import float_in
 
 _confidence = float_in(0.5, 0.999, "confidence")
 _trim = float_in(0.0, 0.45, "trim fraction")
@@ -22,7 +22,7 @@ def _fit(text: str) -> tuple[str, ...]:
 
 
 def _components(text: str) -> tuple[str, ...]:
-    from .calib.table import COMPONENTS
+    from ..calib.table import COMPONENTS
 
     parts = tuple(p.strip().lower() for p in text.split(",") if p.strip())
     if not parts or any(p not in COMPONENTS for p in parts) or len(set(parts)) != len(parts):
@@ -32,7 +32,7 @@ def _components(text: str) -> tuple[str, ...]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from .model.params import THESIS_K, CuttingParams
+    from ..model.params import THESIS_K, CuttingParams
 
     p = sub.add_parser(
         "calibrate",
@@ -100,9 +100,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.make_example is not None:
         return _make_example(args)
-    from .calib.design import ModelSetup, Sensitivities
-    from .calib.fit import FitOptions, calibrate, finite_or_none
-    from .calib.table import read_case_table
+    from ..calib.design import ModelSetup, Sensitivities
+    from ..calib.fit import FitOptions, calibrate, finite_or_none
+    from ..calib.table import read_case_table
 
     if args.label is not None and args.apply is None:
         raise ValueError("--label chooses the material for --apply")
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         folder = _process(args)
         rows = folder.rows
         if args.table_out is not None:
-            from .calib.table import write_case_table
+            from ..calib.table import write_case_table
 
             write_case_table(args.table_out, rows)
     cal = calibrate(rows, options, sens)
@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         result["failures"] = folder.failures
         result["recording_warnings"] = folder.warnings
     if args.plot is not None:
-        from .calib.plot import plot_calibration
+        from ..calib.plot import plot_calibration
 
         plot_calibration(cal, args.plot, sens)
     # Apply last, after everything is written: a refusal must not cost the fit.
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(finite_or_none(result), indent=2, allow_nan=False))
     else:
-        from .calib.report import format_calibration, format_recordings
+        from ..calib.report import format_calibration, format_recordings
 
         if folder is not None:
             print(format_recordings(folder))
@@ -189,7 +189,7 @@ def _check_writable(path: Path | None) -> None:
 
 
 def _process(args: argparse.Namespace):
-    from .calib.folder import process_folder
+    from ..calib.folder import process_folder
 
     progress = None
     if sys.stderr.isatty() and not args.json:
@@ -212,8 +212,8 @@ def _process(args: argparse.Namespace):
 
 
 def _apply(args: argparse.Namespace, cal) -> dict:
-    from ..client import connection
-    from ..client.rest import BurrRest, RestError
+    from ...client import connection
+    from ...client.rest import BurrRest, RestError
 
     est = cal.estimate
     if not 0.0 <= est.k <= 100.0:
@@ -236,7 +236,7 @@ def _apply(args: argparse.Namespace, cal) -> dict:
 
 
 def _make_example(args: argparse.Namespace) -> int:
-    from .calib.example import write_example
+    from ..calib.example import write_example
 
     folder = write_example(args.make_example, seed=args.seed)
     print(f"wrote {folder.count} synthetic recordings of known truth (Us = "

@@ -8,8 +8,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from . import __version__
-from .cli_args import float_at_least, int_in
+from .. import __version__
+from .args import float_at_least, int_in
 
 _positive_float = float_at_least(0.0, inclusive=False)
 _non_negative_float = float_at_least(0.0, inclusive=True)
@@ -28,9 +28,9 @@ def _angles(text: str) -> list[float]:
 
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
-    from .model.burr import DEFAULT_N_THETA
-    from .model.cases import THESIS_DEPTH_MM, THESIS_FEED_MM_S, THESIS_RPM
-    from .model.params import THESIS_K, THESIS_US_N_MM2, CuttingParams
+    from ..model.burr import DEFAULT_N_THETA
+    from ..model.cases import THESIS_DEPTH_MM, THESIS_FEED_MM_S, THESIS_RPM
+    from ..model.params import THESIS_K, THESIS_US_N_MM2, CuttingParams
 
     p = sub.add_parser(
         "experiment",
@@ -70,8 +70,8 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_experiment(args: argparse.Namespace) -> int:
-    from .experiment import format_table, plot_experiment, rows_to_json, run_experiment
-    from .model import BurrGrid, CuttingModel, CuttingParams
+    from ..experiment import format_table, plot_experiment, rows_to_json, run_experiment
+    from ..model import BurrGrid, CuttingModel, CuttingParams
 
     if args.depth_mm > 2.0 * args.radius_mm:
         raise ValueError(f"--depth-mm {args.depth_mm} exceeds the burr diameter "
@@ -107,31 +107,37 @@ def _run_experiment(args: argparse.Namespace) -> int:
 
 
 def _add_bone(sub: argparse._SubParsersAction) -> None:
-    from . import cli_bone
+    from . import bone as cli_bone
 
     cli_bone.add_parser(sub)
 
 
 def _add_replay(sub: argparse._SubParsersAction) -> None:
-    from . import cli_replay
+    from . import replay as cli_replay
 
     cli_replay.add_parser(sub)
 
 
 def _add_serve(sub: argparse._SubParsersAction) -> None:
-    from . import cli_serve
+    from . import serve as cli_serve
 
     cli_serve.add_parser(sub)
 
 
+def _add_device(sub: argparse._SubParsersAction) -> None:
+    from . import device as cli_device
+
+    cli_device.add_parser(sub)
+
+
 def _add_client(sub: argparse._SubParsersAction) -> None:
-    from ..client import demo
+    from ...client import demo
 
     demo.add_parser(sub)
 
 
 def _add_calibrate(sub: argparse._SubParsersAction) -> None:
-    from . import cli_calibrate
+    from . import calibrate as cli_calibrate
 
     cli_calibrate.add_parser(sub)
 
@@ -139,17 +145,19 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    from .bench import accuracy as bench_accuracy
-    from .bench import latency as bench_latency
-    from .bench import load as bench_load
-    from .bench import model as bench_model
-    from .bench import stability as bench_stability
+    from ..bench import accuracy as bench_accuracy
+    from ..bench import device as bench_device
+    from ..bench import latency as bench_latency
+    from ..bench import load as bench_load
+    from ..bench import model as bench_model
+    from ..bench import stability as bench_stability
 
     bench_model.add_parser(bench_sub)
     bench_accuracy.add_parser(bench_sub)
     bench_load.add_parser(bench_sub)
     bench_latency.add_parser(bench_sub)
     bench_stability.add_parser(bench_sub)
+    bench_device.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -164,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bone(sub)
     _add_serve(sub)
     _add_client(sub)
+    _add_device(sub)
     _add_bench(sub)
     _add_replay(sub)
     return parser
@@ -182,6 +191,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -9,6 +9,7 @@ against it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import ipaddress
 import os
@@ -20,12 +21,13 @@ import threading
 import time
 from pathlib import Path
 
-from ..client import connection
-from ..proto.frames import FRAMES
-from ..proto.tag import parse_key
-from .api.config import DEFAULT_HTTP_PORT, DEFAULT_UDP_PORT, ServeConfig, load_config
-from .cli_args import float_in, int_in
-from .haptics.profiles import PROFILES
+from ...client import connection
+from ...proto.frames import FRAMES
+from ...proto.tag import parse_key
+from ..api.config import DEFAULT_HTTP_PORT, DEFAULT_UDP_PORT, ServeConfig, load_config
+from ..haptics.profiles import PROFILES
+from .args import float_in, int_in
+from .device import add_loop_options, loop_config
 
 STATUS_INTERVAL_S = 2.0
 TOKEN_FILE = "token"
@@ -83,6 +85,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         f"{connection.default_path()}")
     p.add_argument("--demo", action="store_true",
                    help="once ready, cut a groove with `burrforce client demo` so forces flow")
+    p.add_argument("--haptic-device", default=None, metavar="DEVICE",
+                   help="drive a local haptic device from the default session: "
+                        "NAME[:key=value,...] with NAME sim, falcon, forcedimension, "
+                        "openhaptics or haply (e.g. falcon:firmware=nvent_firmware.bin); "
+                        "`burrforce device list` shows what is plugged in. The session's "
+                        "output is then coupled for the device's profile")
+    add_loop_options(p)
     p.set_defaults(func=main)
 
 
@@ -118,9 +127,9 @@ def resolve_token(config: ServeConfig) -> tuple[str, bool]:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .api.models import Parameters
-    from .api.sources import file_source
-    from .api.stack import ServerStack
+    from ..api.models import Parameters
+    from ..api.sources import file_source
+    from ..api.stack import ServerStack
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
@@ -154,10 +163,19 @@ def main(args: argparse.Namespace) -> int:
             # The command line is the operator's own: any readable file, not only the library.
             path = Path(bone).expanduser().resolve()
             source = file_source(f"file:{path}", path, args.kind)
+        device_profile = config.device
+        if args.haptic_device and device_profile is None:
+            from ..devices.registry import HAPTIC, check_spec
+
+            name, options = check_spec(args.haptic_device, "haptic")
+            device_profile = HAPTIC[name].profile_for(options)
+        config = dataclasses.replace(config, device=device_profile)
         session = stack.add_session(source, Parameters(frame=config.frame,
-                                                       device=config.device),
+                                                       device=device_profile),
                                     session_id=config.session_id, key_hex=key_hex,
                                     authenticated=not config.no_auth)
+        if args.haptic_device:
+            _start_device(say, plane, session, args)
         server = stack.server
         done = threading.Event()
         context = {}
@@ -178,7 +196,7 @@ def main(args: argparse.Namespace) -> int:
                     context["path"])
             if args.demo:
                 _run_demo(say, context["path"], done)
-            _report(stack.stats, session.id, done, say)
+            _report(stack.stats, session.id, done, say, plane.devices)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
         # uvicorn handles SIGINT/SIGTERM while it runs, then restores these handlers and
@@ -242,11 +260,34 @@ def _run_demo(say, conn_path: Path, done: threading.Event) -> None:
     say(f"--demo finished (exit {proc.returncode}); the server keeps running.")
 
 
-def _report(stats, session_id: int, done: threading.Event, say) -> None:
-    """A status line every few seconds while packets arrive."""
+def _start_device(say, plane, session, args: argparse.Namespace) -> None:
+    """Attach ``--haptic-device`` to the default session (raises with the reason if it
+    cannot be opened)."""
+    from ..api.manager import ApiError
+
+    def make_config(s, host: str, port: int):
+        c = s.config
+        return loop_config(args, args.haptic_device, host, port, s.id, s.key_hex, c.frame,
+                           s.bone_info, c.placement_position, c.placement_orientation)
+
+    say(f"opening {args.haptic_device}...")
+    try:
+        process = plane.devices.attach(plane, session.id, make_config)
+    except ApiError as exc:
+        raise RuntimeError(f"--haptic-device {args.haptic_device}: {exc.detail}") from None
+    for text in process.drain_events():
+        say(f"  device: {text}")
+
+
+def _report(stats, session_id: int, done: threading.Event, say, devices=None) -> None:
+    """A status line every few seconds while packets arrive; device events as they come."""
     last_received = None
     last_t = time.monotonic()
     while not done.wait(STATUS_INTERVAL_S):
+        if devices is not None:
+            for sid, process in list(devices.loops.items()):
+                for text in process.drain_events():
+                    say(f"device (session {sid}): {text}")
         latest = stats.latest
         if latest is None:
             continue

@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from .cli_args import float_at_least, float_in
+from .args import float_at_least, float_in
 
 _non_negative_float = float_at_least(0.0, inclusive=True)
 _k = float_in(0.0, 100.0, "K")
@@ -50,8 +50,8 @@ def _check_writable(path: Path | None, what: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .bone.loaders import save_bone
-    from .record import read_recording, replay
+    from ..bone.loaders import save_bone
+    from ..record import read_recording, replay
 
     _check_writable(args.csv, "CSV")
     _check_writable(args.bone_out, "bone")

@@ -1,0 +1,86 @@
+"""Devices attached to sessions: one device loop process per session, at most."""
+
+from __future__ import annotations
+
+import threading
+
+from ..devices.loop import DeviceLoopConfig
+from ..devices.process import DeviceProcess
+from .manager import ApiError, ControlPlane
+
+#: How long an attach waits for the loop to open its device (homing continues after).
+OPEN_WAIT_S = 10.0
+
+
+class DeviceAttachments:
+    """The device loops of a control plane, by session id (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.loops: dict[int, DeviceProcess] = {}
+
+    def attach(self, plane: ControlPlane, session_id: int, make_config) -> DeviceProcess:
+        """Start a device loop for a ready session. ``make_config(session, host, port)``
+        returns its DeviceLoopConfig (ValueError → 422). Waits until the device is open (or
+        homing); a loop that fails to open is removed and its reason raised as 422 (the
+        request names a device this machine cannot open: not plugged in, no permission, a
+        vendor library or firmware missing)."""
+        session = plane.ready(session_id)
+        host, port = plane.hot.address
+        if host in ("0.0.0.0", "::", ""):
+            host = "127.0.0.1" if host != "::" else "::1"
+        try:
+            config: DeviceLoopConfig = make_config(session, host, port)
+        except ValueError as exc:
+            raise ApiError(422, str(exc)) from None
+        with self._lock:
+            old = self.loops.get(session_id)
+            if old is not None and old.is_alive():
+                raise ApiError(409, f"session {session_id} already drives {old.config.device}; "
+                                    "DELETE its device first")
+            process = DeviceProcess(config)
+            self.loops[session_id] = process
+        process.start()
+        state = process.wait_state(("homing", "running", "stopped", "failed"), OPEN_WAIT_S)
+        if state in ("failed", "stopped"):
+            process.stop()
+            reasons = [text for _, text in process.events if text.startswith("failed")]
+            with self._lock:
+                if self.loops.get(session_id) is process:
+                    del self.loops[session_id]
+            raise ApiError(422, reasons[-1] if reasons else f"the device loop {state}")
+        return process
+
+    def get(self, session_id: int) -> DeviceProcess:
+        with self._lock:
+            process = self.loops.get(session_id)
+        if process is None:
+            raise ApiError(404, f"session {session_id} has no device attached")
+        return process
+
+    def detach(self, session_id: int) -> dict:
+        with self._lock:
+            process = self.loops.pop(session_id, None)
+        if process is None:
+            raise ApiError(404, f"session {session_id} has no device attached")
+        process.stop()
+        return process.status()
+
+    def discard(self, session_id: int) -> None:
+        """Stop the session's device loop, if it has one."""
+        with self._lock:
+            process = self.loops.pop(session_id, None)
+        if process is not None:
+            process.stop()
+
+    def statuses(self) -> dict[int, dict]:
+        with self._lock:
+            loops = dict(self.loops)
+        return {sid: p.status() for sid, p in loops.items()}
+
+    def close(self) -> None:
+        with self._lock:
+            loops = list(self.loops.values())
+            self.loops.clear()
+        for process in loops:
+            process.stop()

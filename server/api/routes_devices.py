@@ -1,0 +1,76 @@
+"""Haptic devices and actuators on the server's machine: list, attach, status, detach."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+
+from ..devices.loop import DeviceLoopConfig
+from ..devices.mapping import WorkspaceMap, bone_top_centre
+from ..devices.registry import HAPTIC, check_spec
+from .models import DeviceAttach
+from .routes_sessions import SessionPath, _plane
+
+router = APIRouter(tags=["devices"])
+
+
+@router.get("/devices")
+def list_devices() -> list[dict]:
+    """Every supported haptic device and actuator back-end, whether its requirements are
+    installed, and the units detected on this machine (USB, sound cards), with the udev rule
+    a detected but inaccessible device needs."""
+    from ..devices.discovery import list_devices as discover
+
+    return discover()
+
+
+@router.put("/sessions/{session_id}/device")
+def attach_device(request: Request, body: DeviceAttach,
+                  session_id: int = SessionPath) -> dict:
+    """Drive a local device from this session: a device loop (its own process) streams the
+    device's pose into the session and renders the coupling model at the device's servo
+    rate, with the watchdog. The session's output becomes coupled for the device's profile
+    unless a device profile is already set. Returns the loop's status (``homing`` while the
+    user homes a Falcon); 422 with the reason if the device cannot be opened here (not plugged
+    in, no permission, a vendor library or the Falcon's firmware missing), 409 if the session
+    already drives one."""
+    plane = _plane(request)
+    attachments = plane.devices
+
+    def make_config(session, host: str, port: int) -> DeviceLoopConfig:
+        name, options = check_spec(body.device, "haptic")
+        if body.actuator:
+            check_spec(body.actuator, "actuator")
+        profile = HAPTIC[name].profile_for(options)
+        if session.device is None and profile is not None:
+            from .models import Parameters
+
+            plane.update_parameters(session.id, Parameters(device=profile))
+        placement = body.placement_mm or bone_top_centre(session.bone_info)
+        c = session.config
+        return DeviceLoopConfig(
+            device=body.device, host=host, port=port, session=session.id,
+            key_hex=session.key_hex, frame=c.frame,
+            placement_position=tuple(c.placement_position),
+            placement_orientation=tuple(c.placement_orientation),
+            workspace=WorkspaceMap(tuple(placement), tuple(body.rotation),
+                                   body.workspace_scale),
+            actuator=body.actuator, rpm=body.rpm, spindle=body.spindle, home=body.home,
+            stale_s=body.stale_ms * 1e-3)
+
+    return attachments.attach(plane, session_id, make_config).status()
+
+
+@router.get("/sessions/{session_id}/device")
+def device_status(request: Request, session_id: int = SessionPath) -> dict:
+    """The device loop's state (starting, homing, running, stopped, failed), counters
+    (cycles, overruns, saturations, watchdog trips, poses, replies), measured servo rate and
+    period/round-trip percentiles, position, force, vibration, and its recent events."""
+    _plane(request).get(session_id)
+    return _plane(request).devices.get(session_id).status()
+
+
+@router.delete("/sessions/{session_id}/device")
+def detach_device(request: Request, session_id: int = SessionPath) -> dict:
+    """Stop the device loop (the device is sent zero force and released); returns its final
+    status."""
+    return _plane(request).devices.detach(session_id)

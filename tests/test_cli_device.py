@@ -1,0 +1,107 @@
+"""``burrforce device`` and ``serve --haptic-device`` as a user runs them (subprocesses)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+
+from burrforce.client import connection
+
+CLI = [sys.executable, "-m", "burrforce.server.cli"]
+
+
+def _run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_device_list_json_names_every_backend():
+    out = _run("device", "list", "--json")
+    assert out.returncode == 0, out.stderr
+    entries = {e["name"]: e for e in json.loads(out.stdout)}
+    assert {"sim", "falcon", "forcedimension", "openhaptics", "haply", "audio", "usb",
+            "wav"} <= set(entries)
+    assert entries["sim"]["kind"] == "haptic" and entries["audio"]["kind"] == "actuator"
+    table = _run("device", "list")
+    assert table.returncode == 0 and "falcon" in table.stdout
+
+
+def test_device_test_reports_rate_and_jitter():
+    out = _run("device", "test", "sim:hand=groove", "--seconds", "0.5", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert report["cycles"] > 10
+    assert report["period_p50_us"] > 0 and report["period_p99_us"] >= report["period_p50_us"]
+    assert report["info"]["backend"] == "sim"
+    # The groove script moved the grip: the range shows it.
+    lo, hi = report["range_mm"]["min"], report["range_mm"]["max"]
+    assert hi[2] - lo[2] > 1.0
+
+
+def test_device_commands_refuse_bad_input_clearly():
+    for args, words in ((("device", "test", "nosuch"), "unknown haptic device"),
+                        (("device", "test", "sim:speed"), "options are key=value"),
+                        (("device", "test", "falcon", "--seconds", "1"), "0403:cb48"),
+                        (("device", "test", "sim", "--seconds", "-1"), "duration")):
+        out = _run(*args)
+        assert out.returncode == 2, (args, out.stdout, out.stderr)
+        assert words in out.stderr, (args, out.stderr)
+        assert "Traceback" not in out.stderr
+
+
+def test_bench_device_json_rows():
+    out = _run("bench", "device", "--devices", "sim", "--seconds", "1", "--repeats", "1",
+               "--no-write", "--json", timeout=300.0)
+    assert out.returncode == 0, out.stderr
+    (row,) = json.loads(out.stdout)
+    for key in ("device", "servo_rate_hz", "period_p50_us", "period_p99_us", "watchdog_ms"):
+        assert key in row
+    assert row["device"] == "sim" and 0.0 < row["watchdog_ms"] <= 50.0
+
+
+def test_serve_with_a_haptic_device(tmp_path):
+    conn = tmp_path / "connection.json"
+    wav = tmp_path / "cue.wav"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    serve = subprocess.Popen(
+        [*CLI, "serve", "--udp-port", "0", "--http-port", "0", "--bone", "phantom:workpiece",
+         "--data-dir", str(tmp_path / "data"), "--connection-file", str(conn),
+         "--haptic-device", "sim:profile=falcon,hand=groove,depth_mm=4",
+         "--actuator", f"wav:path={wav}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        lines = []
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            text = serve.stdout.readline()
+            lines.append(text)
+            if "Ctrl-C stops" in text or not text:
+                break
+        out = "".join(lines)
+        assert "coupled output (device falcon)" in out, out
+        assert "simulated falcon" in out, out
+        c = connection.read(conn)
+        with httpx.Client(base_url=c.http_url + "/v1", timeout=30.0,
+                          headers={"Authorization": f"Bearer {c.token}"}) as api:
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                status = api.get(f"/sessions/{c.session}/device").json()
+                if status["counters"]["replies"] > 500:
+                    break
+                time.sleep(0.2)
+            assert status["state"] == "running" and status["counters"]["replies"] > 500
+            assert api.get("/devices").status_code == 200
+        serve.send_signal(signal.SIGTERM)
+        rest = serve.communicate(timeout=60)[0]
+        assert serve.returncode == 0, rest
+        assert "stopped" in rest
+        assert wav.stat().st_size > 1000
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.wait()

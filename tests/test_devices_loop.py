@@ -1,0 +1,262 @@
+"""The device loop against a real server: a real hot loop, real UDP on 127.0.0.1, the device
+loop in its own process with the simulated device; the watchdog measured; REST and metrics.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from burrforce.server.api.config import ServeConfig
+from burrforce.server.api.models import Parameters
+from burrforce.server.api.stack import ServerStack
+from burrforce.server.devices import stats as st
+from burrforce.server.devices.loop import DeviceLoopConfig
+from burrforce.server.devices.mapping import WorkspaceMap, bone_top_centre
+from burrforce.server.devices.process import DeviceProcess
+from burrforce.server.devices.registry import create_device, parse_spec
+
+TOKEN = "device-loop-test-token-0123456789"
+KEY = "11" * 32
+SIM = "sim:profile=falcon,hand=groove,depth_mm=4"
+#: The watchdog's bound (SPEC 7.6, issue 17): zero force within 50 ms.
+WATCHDOG_S = 0.05
+
+
+def _stack(tmp_path) -> ServerStack:
+    stack = ServerStack(ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path / "data"), TOKEN)
+    stack.__enter__()
+    return stack
+
+
+@pytest.fixture
+def stack(tmp_path):
+    s = _stack(tmp_path)
+    try:
+        yield s
+    finally:
+        s.stop()
+
+
+def _session(stack: ServerStack, sid: int = 5):
+    source = stack.plane.resolve("phantom:workpiece", None, 0.1)
+    return stack.add_session(source, Parameters(device="falcon"), session_id=sid, key_hex=KEY)
+
+
+def _config(stack: ServerStack, session, **kw) -> DeviceLoopConfig:
+    host, port = stack.udp_address
+    return DeviceLoopConfig(device=kw.pop("device", SIM), host=host, port=port,
+                            session=session.id, key_hex=KEY,
+                            workspace=WorkspaceMap(bone_top_centre(session.bone_info)), **kw)
+
+
+def _wait(predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_the_sim_device_cuts_a_groove_through_the_loop(stack, tmp_path):
+    session = _session(stack)
+    wav = tmp_path / "cue.wav"
+    process = DeviceProcess(_config(stack, session, actuator=f"wav:path={wav}"))
+    process.start()
+    try:
+        assert process.wait_state(("running", "failed"), 60.0) == "running", process.status()
+        # The groove script reaches the bone after ~0.5 s and cuts for ~3 s.
+        assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 50, 30.0)
+        status = process.status()
+        c = status["counters"]
+        assert c["cycles"] > 100 and c["poses_sent"] > 100
+        assert c["replies"] > 0.5 * c["poses_sent"]
+        assert status["period_p50_us"] is not None and status["round_trip_p50_us"] is not None
+        assert status["vibration"]["frequency_hz"] == pytest.approx(1000.0)
+        assert _wait(lambda: np.linalg.norm(process.status()["force_N"]) > 0.05, 10.0)
+    finally:
+        process.stop()
+    assert process.status()["state"] == "stopped"
+    assert process.status()["force_N"] == [0.0, 0.0, 0.0]
+    assert wav.stat().st_size > 1000  # the cue was synthesized while cutting
+
+
+def _watchdog_time(process: DeviceProcess) -> float:
+    """From the newest reply's arrival to the device being sent zero force, s."""
+    s = process.stats
+    assert _wait(lambda: s[st.ST_T_DEVICE_ZERO] > s[st.ST_T_LAST_REPLY] > 0.0, 2.0), \
+        process.status()
+    return float(s[st.ST_T_DEVICE_ZERO] - s[st.ST_T_LAST_REPLY])
+
+
+def _cutting(process: DeviceProcess) -> None:
+    """Wait until the device is pushed (a force above 0.05 N is being rendered)."""
+    assert process.wait_state(("running", "failed"), 60.0) == "running", process.status()
+    assert _wait(lambda: process.status()["live"]
+                 and np.linalg.norm(process.stats[st.ST_FORCE:st.ST_FORCE + 3]) > 0.05, 20.0)
+
+
+def test_watchdog_zeroes_the_force_when_the_hot_loop_is_killed(tmp_path):
+    stack = _stack(tmp_path)
+    process = None
+    try:
+        session = _session(stack)
+        process = DeviceProcess(_config(stack, session))
+        process.start()
+        _cutting(process)
+        os.kill(stack.hot.pid, signal.SIGKILL)
+        elapsed = _watchdog_time(process)
+        assert 0.0 < elapsed <= WATCHDOG_S, elapsed
+        assert not process.status()["live"]
+        assert process.status()["counters"]["watchdog_trips"] >= 1
+        assert process.is_alive()  # it waits for the server to come back, force zero
+    finally:
+        if process is not None:
+            process.stop()
+        stack.stop()
+
+
+def test_watchdog_zeroes_the_force_when_the_stream_stops_being_answered(stack):
+    session = _session(stack)
+    process = DeviceProcess(_config(stack, session))
+    process.start()
+    try:
+        _cutting(process)
+        stack.hot.call("remove_session", session_id=session.id)  # UNKNOWN_SESSION from now
+        elapsed = _watchdog_time(process)
+        assert 0.0 < elapsed <= WATCHDOG_S, elapsed
+        assert _wait(lambda: process.status()["counters"]["notices"] > 0, 2.0)
+    finally:
+        process.stop()
+
+
+def test_sigterm_zeroes_and_releases_the_device(stack):
+    session = _session(stack)
+    process = DeviceProcess(_config(stack, session))
+    process.start()
+    _cutting(process)
+    os.kill(process._process.pid, signal.SIGTERM)
+    process._process.join(10.0)
+    assert process.status()["state"] == "stopped"
+    assert process.status()["force_N"] == [0.0, 0.0, 0.0]
+    process.stop()
+
+
+def test_rest_attach_status_metrics_detach(stack):
+    _session(stack, sid=9)
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    with httpx.Client(base_url=stack.url + "/v1", headers=headers, timeout=60.0) as api:
+        r = api.put("/sessions/9/device", json={"device": SIM, "home": True})
+        assert r.status_code == 200, r.text
+        assert r.json()["state"] in ("homing", "running")
+        assert api.put("/sessions/9/device", json={"device": SIM}).status_code == 409
+        assert _wait(lambda: api.get("/sessions/9/device").json()["counters"]["replies"] > 100,
+                     20.0)
+        status = api.get("/sessions/9/device").json()
+        assert status["workspace"]["placement_mm"] == pytest.approx([13.05, 0.05, 3.05])
+        metrics = httpx.get(stack.url + "/metrics", headers=headers).text
+        assert 'burrforce_device_total{counter="cycles",device="sim",session="9"}' in metrics
+        assert "burrforce_device_servo_rate_hz" in metrics
+        final = api.delete("/sessions/9/device").json()
+        assert final["state"] == "stopped" and final["force_N"] == [0.0, 0.0, 0.0]
+        assert api.get("/sessions/9/device").status_code == 404
+        assert api.delete("/sessions/9/device").status_code == 404
+
+
+@pytest.mark.parametrize(("body", "status", "words"), [
+    ({"device": "nosuch"}, 422, "unknown haptic device"),
+    ({"device": "sim:hand=zigzag"}, 422, "unknown hand script"),
+    ({"device": "sim:wings=2"}, 422, "no option wings"),
+    ({"device": "sim:profile=hovercraft"}, 422, "unknown profile"),
+    ({"device": "sim", "actuator": "buzzer"}, 422, "unknown actuator"),
+    ({"device": "sim", "stale_ms": 80}, 422, "stale_ms"),
+    ({"device": "sim", "rotation": [0, 0, 0, 0.1]}, 422, "unit quaternion"),
+    ({"device": "sim", "placement_mm": [0, 0, "x"]}, 422, "placement_mm"),
+    # Well-formed, but this machine cannot open them: the reason comes back.
+    ({"device": "falcon"}, 422, "0403:cb48"),
+    ({"device": "forcedimension"}, 422, "burrforce[forcedimension]"),
+])
+def test_bad_attach_requests_say_what_is_wrong(stack, body, status, words):
+    _session(stack, sid=11)
+    r = httpx.put(stack.url + "/v1/sessions/11/device", json=body, timeout=60.0,
+                  headers={"Authorization": f"Bearer {TOKEN}"})
+    assert r.status_code == status, r.text
+    assert words in r.text
+    assert httpx.get(stack.url + "/v1/sessions/11/device", timeout=10.0,
+                     headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 404
+
+
+def test_attaching_to_a_missing_session_is_404(stack):
+    r = httpx.put(stack.url + "/v1/sessions/404/device", json={"device": "sim"},
+                  headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10.0)
+    assert r.status_code == 404
+
+
+def test_deleting_a_session_stops_its_device(stack):
+    session = _session(stack, sid=12)
+    process = stack.plane.devices.attach(stack.plane, 12, lambda s, h, p: _config(stack, session))
+    assert process.is_alive()
+    stack.plane.delete_session(12)
+    assert not process.is_alive() and process.status()["state"] == "stopped"
+
+
+def test_specs_parse_and_bad_ones_are_refused():
+    assert parse_spec("falcon:index=1,firmware=/x/nvent.bin,home=false") == (
+        "falcon", {"index": 1, "firmware": "/x/nvent.bin", "home": False})
+    assert parse_spec(" sim ") == ("sim", {})
+    for bad in ("", "sim:hand", "sim:=3", "sim:1a=2"):
+        with pytest.raises(ValueError):
+            parse_spec(bad)
+    with pytest.raises(ValueError, match="no option bogus"):
+        create_device("sim:bogus=1")
+    with pytest.raises(ValueError, match="unknown haptic device"):
+        create_device("phantom-omni")
+
+
+def test_the_emulated_falcon_through_the_device_loop(stack):
+    """The real Falcon driver (pyusb → libusb → usbfs, emulated by umockdev) in the device
+    loop: it cuts, the watchdog zeroes its motors within 50 ms of the hot loop's death (the
+    emulator's own log of motor commands), and unplugging it fails the loop at once."""
+    from burrforce.server.bench.device import falcon_groove_path
+    from burrforce.server.devices.emulation.launcher import (
+        EmulatedUsb,
+        emulation_unavailable_reason,
+    )
+
+    reason = emulation_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"umockdev emulation unavailable: {reason}")
+    session = _session(stack)
+    with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
+        process = DeviceProcess(_config(stack, session, device="falcon"))
+        process.start(emu.client_env())
+        try:
+            assert process.wait_state(("running", "failed"), 60.0) == "running", \
+                process.status()
+            emu.control("set_hand", path=falcon_groove_path(6.0))
+            assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 20, 30.0), \
+                process.status()
+            _cutting(process)
+            t_kill = time.monotonic_ns()
+            os.kill(stack.hot.pid, signal.SIGKILL)
+            elapsed = _watchdog_time(process)
+            assert elapsed <= WATCHDOG_S
+            rows = emu.control("log", since_ns=t_kill - 200_000_000)["rows"]
+            last_reply_ns = process.stats[st.ST_T_LAST_REPLY] * 1e9
+            pushed = [r[0] for r in rows if any(r[1:4])]
+            assert pushed, "the motors were never commanded"
+            assert (max(pushed) - last_reply_ns) * 1e-9 <= WATCHDOG_S
+            assert not any(rows[-1][1:4])  # and they stay at zero
+            emu.unplug()
+            assert process.wait_state(("failed", "stopped"), 5.0) == "failed"
+            assert _wait(lambda: any("disconnected" in t for t in process.drain_events())
+                         or any("disconnected" in t for _, t in process.events), 5.0), \
+                process.events
+        finally:
+            process.stop()

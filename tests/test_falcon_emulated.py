@@ -1,0 +1,263 @@
+"""FalconDevice, unchanged, through real pyusb + libusb against the umockdev-emulated Falcon
+(``devices.emulation``): firmware upload, homing, force rendering, clamping, velocity,
+zeroing on close, unplugging.
+
+The driver runs in a child process started under the emulator's preload (LD_PRELOAD cannot
+be added to a running process) and obeys one JSON command per stdin line, answering one
+JSON line each. Skips, with the reason, where umockdev/PyGObject are missing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import selectors
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from burrforce.server.devices.emulation import EmulatedUsb, emulation_unavailable_reason
+from burrforce.server.devices.falcon import protocol as P
+from burrforce.server.devices.falcon.kinematics import commands_to_torques, end_effector_force
+from burrforce.server.haptics.profiles import PROFILES
+
+pytestmark = pytest.mark.skipif(emulation_unavailable_reason() is not None,
+                                reason=f"USB emulation unavailable: "
+                                       f"{emulation_unavailable_reason()}")
+
+DRIVER = r"""
+import json, sys, time
+import numpy as np
+from burrforce.server.devices.base import DeviceError
+from burrforce.server.devices.falcon import FalconDevice
+
+def emit(**kv):
+    print(json.dumps(kv), flush=True)
+
+def state_dict(s):
+    return {"position_mm": s.position_mm.tolist(), "velocity_mm_s": s.velocity_mm_s.tolist(),
+            "buttons": s.buttons, "t_ns": s.t_ns}
+
+dev = FalconDevice(firmware=json.loads(sys.argv[1]))
+try:
+    dev.open()
+except DeviceError as exc:
+    emit(error=type(exc).__name__, message=str(exc), is_open=dev.is_open)
+    raise SystemExit(0)
+emit(opened=True, firmware_status=dev.firmware_status, serial=dev.info.serial)
+for line in sys.stdin:
+    cmd = json.loads(line)
+    op = cmd["op"]
+    try:
+        if op == "home":
+            messages = []
+            homed = dev.home(timeout_s=cmd["home_s"], progress=messages.append)
+            emit(homed=homed, messages=messages, cycles=dev.cycles)
+        elif op == "cycles":
+            force = np.array(cmd["force"], dtype=float)
+            t0 = time.perf_counter()
+            for _ in range(cmd["n"]):
+                s = dev.cycle(force)
+            emit(s_per_cycle=(time.perf_counter() - t0) / cmd["n"], homed=dev.homed,
+                 fk_failures=dev.fk_failures, bad_packets=dev.bad_packets, **state_dict(s))
+        elif op == "cycle_until_error":
+            n = 0
+            while True:
+                dev.cycle(np.zeros(3))
+                n += 1
+        elif op == "close":
+            dev.close()
+            dev.close()
+            emit(closed=True, is_open=dev.is_open)
+            break
+    except DeviceError as exc:
+        emit(error=type(exc).__name__, message=str(exc), t_ns=time.monotonic_ns())
+"""
+
+
+class Driver:
+    """The driver process: send it commands, read its answers (with a timeout)."""
+
+    def __init__(self, emu: EmulatedUsb, firmware: str | None) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", DRIVER, json.dumps(firmware)],
+                                     env=emu.client_env(), stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self.proc.stdout, selectors.EVENT_READ)
+        self._buf = b""
+
+    def answer(self, timeout_s: float = 60.0) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while b"\n" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0 or not self._sel.select(left):
+                raise AssertionError(f"the driver did not answer within {timeout_s} s")
+            chunk = os.read(self.proc.stdout.fileno(), 65536)
+            if not chunk:
+                err = self.proc.stderr.read().decode(errors="replace")
+                raise AssertionError(f"the driver exited ({self.proc.wait()}):\n{err[-4000:]}")
+            self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        return json.loads(line)
+
+    def __call__(self, op: str, timeout_s: float = 60.0, **args) -> dict:
+        self.proc.stdin.write((json.dumps({"op": op, **args}) + "\n").encode())
+        self.proc.stdin.flush()
+        return self.answer(timeout_s)
+
+    def finish(self) -> None:
+        try:
+            if self.proc.stdin and not self.proc.stdin.closed:
+                self.proc.stdin.close()
+            self.proc.wait(30)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self._sel.close()
+            self.proc.stdout.close()
+            self.proc.stderr.close()
+
+
+def sweep_path(amplitude_mm: float = 25.0, period_s: float = 1.0, seconds: float = 60.0):
+    """A hand path sweeping the grip along z (every axis turns), for homing."""
+    return [[k * period_s / 2, 0.0, 0.0, amplitude_mm * (-1) ** k]
+            for k in range(int(2 * seconds / period_s) + 1)]
+
+
+def force_at(emu: EmulatedUsb) -> np.ndarray:
+    """The force the emulated motors exert now (N): their last command at the grip's position."""
+    state = emu.state()
+    tau = commands_to_torques(np.array(state["motor_command"], dtype=float))
+    return end_effector_force(np.array(state["position_m"]), tau)
+
+
+def test_driver_uploads_firmware_homes_renders_and_zeroes(tmp_path, record_property):
+    image = bytes((i * 7 + 3) & 0xFF for i in range(3000))  # a dummy: the emulator runs none
+    firmware = tmp_path / "falcon_firmware.bin"
+    firmware.write_bytes(image)
+    with EmulatedUsb("falcon", homing_travel_counts=400) as emu:
+        assert emu.state()["mode"] == "bootloader"
+        drv = Driver(emu, str(firmware))
+        try:
+            opened = drv.answer()
+            assert opened.get("opened"), opened
+            state = emu.state()
+            assert state["mode"] == "firmware" and state["uploads"] == 1
+            assert state["upload_bytes"] == len(image)
+            assert state["upload_sha256"] == hashlib.sha256(image).hexdigest()
+            assert "loaded firmware" in opened["firmware_status"]
+            assert hashlib.sha256(image).hexdigest()[:16] in opened["firmware_status"]
+            assert opened["serial"].startswith("usb:")
+
+            # Before homing: zero force, red light, homing bit set.
+            before = drv("cycles", n=20, force=[0.0, 0.0, 5.0])
+            assert not before["homed"]
+            state = emu.state()
+            assert state["motor_command"] == [0, 0, 0] and state["homing_mode"]
+            assert state["leds"] == P.LED_RED
+
+            # The user sweeps the grip through its range.
+            emu.control("set_hand", path=sweep_path())
+            homing = drv("home", home_s=30.0)
+            assert homing["homed"], homing
+            assert any("pull the grip" in m.lower() for m in homing["messages"])
+            assert emu.state()["leds"] == P.LED_GREEN
+
+            # Hold the grip still (a stiff, well damped hand) and read its position.
+            emu.control("set_hand", target_mm=[5.0, -3.0, 8.0], stiffness_N_mm=1.0,
+                        damping_N_s_mm=0.03)
+            held = drv("cycles", n=600, force=[0.0, 0.0, 0.0])
+            true_mm = np.array(emu.state()["position_mm"])
+            assert np.abs(np.array(held["position_mm"]) - true_mm).max() < 0.2
+            assert np.abs(held["velocity_mm_s"]).max() < 5.0
+            assert held["fk_failures"] == 0 and held["bad_packets"] == 0
+
+            # A force is rendered as commanded (the emulator pushes with the real kinematics).
+            pushed = drv("cycles", n=600, force=[1.0, -0.5, 2.0])
+            np.testing.assert_allclose(force_at(emu), [1.0, -0.5, 2.0], atol=0.03)
+            assert np.abs(np.array(pushed["position_mm"]) - emu.state()["position_mm"]).max() \
+                < 0.2
+
+            # Too strong: clamped to the profile's max force, direction kept.
+            drv("cycles", n=50, force=[0.0, 0.0, 80.0])
+            f = force_at(emu)
+            assert np.linalg.norm(f) == pytest.approx(PROFILES["falcon"].max_force_N, rel=0.02)
+            assert f[2] > 0.99 * np.linalg.norm(f)
+            # Not a number: zero force.
+            drv("cycles", n=5, force=[float("nan"), 0.0, 1.0])
+            assert emu.state()["motor_command"] == [0, 0, 0]
+
+            # Velocity: the hand drags the grip at 20 mm/s along x.
+            emu.control("set_hand", path=[[0.0, 0.0, 0.0, 0.0], [2.0, 40.0, 0.0, 0.0]])
+            drv("cycles", n=300, force=[0.0, 0.0, 0.0])
+            moving = drv("cycles", n=100, force=[0.0, 0.0, 0.0])
+            true_v = np.array(emu.state()["velocity_m_s"]) * 1e3
+            assert true_v[0] == pytest.approx(20.0, abs=4.0)   # still on the ramp
+            np.testing.assert_allclose(moving["velocity_mm_s"], true_v, atol=4.0)
+            record_property("falcon_driver_ms_per_cycle_emulated",
+                            round(moving["s_per_cycle"] * 1e3, 3))
+            print(f"\nFalconDevice.cycle through the emulation: "
+                  f"{moving['s_per_cycle'] * 1e3:.2f} ms")
+
+            drv("cycles", n=50, force=[0.0, 0.0, 3.0])
+            assert emu.state()["motor_command"] != [0, 0, 0]
+            closed = drv("close")
+            assert closed == {"closed": True, "is_open": False}
+            state = emu.state()
+            assert state["motor_command"] == [0, 0, 0] and state["leds"] == 0
+        finally:
+            drv.finish()
+
+
+def test_driver_skips_the_upload_when_firmware_runs():
+    with EmulatedUsb("falcon", firmware_loaded=True, homed=True, start_mm=[-4.0, 6.0, 2.0],
+                     buttons=0x5) as emu:
+        drv = Driver(emu, None)
+        try:
+            opened = drv.answer()
+            assert opened["firmware_status"] == "firmware already running"
+            assert emu.state()["uploads"] == 0
+            homing = drv("home", home_s=5.0)
+            assert homing["homed"] and homing["messages"] == []
+            out = drv("cycles", n=200, force=[0.0, 0.0, 0.0])
+            assert out["buttons"] == 0x5
+            np.testing.assert_allclose(out["position_mm"], emu.state()["position_mm"], atol=0.2)
+            drv("close")
+        finally:
+            drv.finish()
+
+
+def test_driver_without_firmware_says_where_to_get_it():
+    with EmulatedUsb("falcon") as emu:
+        drv = Driver(emu, None)
+        try:
+            failed = drv.answer()
+        finally:
+            drv.finish()
+        assert failed["error"] == "FirmwareError" and not failed["is_open"]
+        assert "nvent_firmware.bin" in failed["message"]
+        assert emu.state()["mode"] == "bootloader"
+
+
+def test_unplugging_mid_stream_raises_device_disconnected():
+    with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
+        drv = Driver(emu, None)
+        try:
+            assert drv.answer()["opened"]
+            drv("cycles", n=50, force=[0.0, 0.0, 1.0])
+            drv.proc.stdin.write(b'{"op": "cycle_until_error"}\n')
+            drv.proc.stdin.flush()
+            time.sleep(0.2)
+            t_unplug = time.monotonic_ns()
+            emu.unplug()
+            failed = drv.answer(timeout_s=30.0)
+            assert failed["error"] == "DeviceDisconnected", failed
+            assert (failed["t_ns"] - t_unplug) * 1e-9 < 2.0
+            assert drv("close") == {"closed": True, "is_open": False}  # no exception
+        finally:
+            drv.finish()
