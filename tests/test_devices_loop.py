@@ -83,7 +83,6 @@ def test_the_sim_device_cuts_a_groove_through_the_loop(stack, tmp_path):
     finally:
         process.stop()
     assert process.status()["state"] == "stopped"
-    assert process.status()["force_N"] == [0.0, 0.0, 0.0]
     assert wav.stat().st_size > 1000  # the cue was synthesized while cutting
 
 
@@ -143,8 +142,8 @@ def test_sigterm_zeroes_and_releases_the_device(stack):
     _cutting(process)
     os.kill(process._process.pid, signal.SIGTERM)
     process._process.join(10.0)
-    assert process.status()["state"] == "stopped"
-    assert process.status()["force_N"] == [0.0, 0.0, 0.0]
+    assert process._process.exitcode == 0
+    assert process.status()["state"] == "stopped"  # through close(): the force zeroed
     process.stop()
 
 
@@ -164,7 +163,7 @@ def test_rest_attach_status_metrics_detach(stack):
         assert 'burrforce_device_total{counter="cycles",device="sim",session="9"}' in metrics
         assert "burrforce_device_servo_rate_hz" in metrics
         final = api.delete("/sessions/9/device").json()
-        assert final["state"] == "stopped" and final["force_N"] == [0.0, 0.0, 0.0]
+        assert final["state"] == "stopped" and final["exit_code"] == 0
         assert api.get("/sessions/9/device").status_code == 404
         assert api.delete("/sessions/9/device").status_code == 404
 
@@ -190,6 +189,47 @@ def test_bad_attach_requests_say_what_is_wrong(stack, body, status, words):
     assert words in r.text
     assert httpx.get(stack.url + "/v1/sessions/11/device", timeout=10.0,
                      headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 404
+
+
+def test_rest_file_options_stay_in_the_data_directory(stack):
+    _session(stack, sid=13)
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    url = stack.url + "/v1/sessions/13/device"
+    for body in ({"device": "sim", "actuator": "wav:path=../../escape.wav"},
+                 {"device": "sim", "actuator": "wav:path=/tmp/escape.wav"},
+                 {"device": "falcon:firmware=/etc/passwd"}):
+        r = httpx.put(url, json=body, headers=headers, timeout=30.0)
+        assert r.status_code == 422 and "data directory" in r.text, (body, r.text)
+    # Inside it, a file that is no firmware image is refused for what it is.
+    (stack.config.data_dir / "fw.bin").write_bytes(b"x" * 10)
+    r = httpx.put(url, json={"device": "falcon:firmware=fw.bin"}, headers=headers,
+                  timeout=30.0)
+    assert r.status_code == 422 and "firmware" in r.text.lower(), r.text
+
+
+def test_a_failed_attach_leaves_the_session_as_it_was(stack):
+    _session(stack, sid=14)
+    stack.plane.update_parameters(14, Parameters(device="none"))
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    r = httpx.put(stack.url + "/v1/sessions/14/device", json={"device": "falcon"},
+                  headers=headers, timeout=30.0)
+    assert r.status_code == 422
+    assert stack.plane.get(14).device is None  # still the raw output it had
+
+
+def test_frame_and_placement_are_frozen_while_a_device_is_attached(stack):
+    session = _session(stack, sid=15)
+    stack.plane.devices.attach(stack.plane, 15, lambda s, h, p: _config(stack, session))
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    url = stack.url + "/v1/sessions/15/parameters"
+    for body in ({"frame": "unity"}, {"placement_position": [1, 2, 3]}):
+        r = httpx.patch(url, json=body, headers=headers, timeout=30.0)
+        assert r.status_code == 409 and "detach" in r.text, r.text
+    assert httpx.patch(url, json={"us_n_mm2": 900.0}, headers=headers,
+                       timeout=30.0).status_code == 200
+    stack.plane.devices.detach(15)
+    assert httpx.patch(url, json={"frame": "unity"}, headers=headers,
+                       timeout=30.0).status_code == 200
 
 
 def test_attaching_to_a_missing_session_is_404(stack):
@@ -258,5 +298,37 @@ def test_the_emulated_falcon_through_the_device_loop(stack):
             assert _wait(lambda: any("disconnected" in t for t in process.drain_events())
                          or any("disconnected" in t for _, t in process.events), 5.0), \
                 process.events
+        finally:
+            process.stop()
+
+
+def test_sigterm_zeroes_the_emulated_falcons_motors(stack):
+    """SIGTERM while the Falcon is pushed: its last motor command is zero, and the last
+    non-zero one came within 50 ms of the signal (the emulator's own log)."""
+    from burrforce.server.bench.device import falcon_groove_path
+    from burrforce.server.devices.emulation.launcher import (
+        EmulatedUsb,
+        emulation_unavailable_reason,
+    )
+
+    reason = emulation_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"umockdev emulation unavailable: {reason}")
+    session = _session(stack)
+    with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
+        process = DeviceProcess(_config(stack, session, device="falcon"))
+        process.start(emu.client_env())
+        try:
+            assert process.wait_state(("running", "failed"), 60.0) == "running"
+            emu.control("set_hand", path=falcon_groove_path(6.0))
+            _cutting(process)
+            t_term = time.monotonic_ns()
+            os.kill(process._process.pid, signal.SIGTERM)
+            process._process.join(10.0)
+            rows = emu.control("log", since_ns=t_term)["rows"]
+            assert rows and not any(rows[-1][1:4]), rows[-3:]
+            pushed = [r[0] for r in rows if any(r[1:4])]
+            assert not pushed or (max(pushed) - t_term) * 1e-9 <= WATCHDOG_S
+            assert process.status()["state"] == "stopped"
         finally:
             process.stop()

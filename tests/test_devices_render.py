@@ -49,9 +49,25 @@ def test_the_proxy_is_extrapolated_by_its_velocity_from_the_pose_sample():
     r.accept(1.0, 1.0, np.array([1.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]), 3.0, 0.01, ZERO)
     f = r.render(np.array([1.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]), 1.004)
     assert f[0] == pytest.approx(3.0 * 0.04)
-    # Extrapolation stops at 50 ms.
     f = r.render(np.array([1.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]), 1.029)
     assert f[0] == pytest.approx(3.0 * 0.29)
+
+
+def test_extrapolation_stops_at_50_ms():
+    r = _renderer(stale_s=0.05)
+    # Sampled at 1.00 s, arrived 40 ms later; rendered at 1.07 s: 70 ms old, extrapolated 50.
+    r.accept(1.0, 1.04, np.array([1.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]), 3.0, 0.0, ZERO)
+    f = r.render(np.array([1.0, 0.0, 0.0]), ZERO, 1.07)
+    assert f[0] == pytest.approx(3.0 * 10.0 * 0.05)
+
+
+def test_a_non_finite_reading_does_not_poison_the_renderer():
+    r = _renderer(passivity=True)
+    r.accept(0.0, 0.0, np.array([1.0, 0.0, 0.0]), ZERO, 1.0, 0.0, ZERO)
+    r.render(ZERO, ZERO, 0.001)
+    r.render(np.array([math.nan, 0.0, 0.0]), ZERO, 0.002)
+    f = r.render(ZERO, ZERO, 0.003)
+    assert np.isfinite(f).all() and f[0] == pytest.approx(1.0)
 
 
 def test_watchdog_zeroes_the_force_when_the_model_is_stale_and_recovers():

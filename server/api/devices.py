@@ -35,11 +35,14 @@ class DeviceAttachments:
             raise ApiError(422, str(exc)) from None
         with self._lock:
             old = self.loops.get(session_id)
-            if old is not None and old.is_alive():
+            # A loop being attached (not started yet) holds its slot as much as a running one.
+            if old is not None and (old.started_s is None or old.is_alive()):
                 raise ApiError(409, f"session {session_id} already drives {old.config.device}; "
                                     "DELETE its device first")
             process = DeviceProcess(config)
             self.loops[session_id] = process
+        if old is not None:
+            old.stop()  # a loop that ended by itself (failed, unplugged): release it
         process.start()
         state = process.wait_state(("homing", "running", "stopped", "failed"), OPEN_WAIT_S)
         if state in ("failed", "stopped"):
@@ -65,6 +68,12 @@ class DeviceAttachments:
             raise ApiError(404, f"session {session_id} has no device attached")
         process.stop()
         return process.status()
+
+    def attached(self, session_id: int) -> bool:
+        """Whether a device loop runs (or is starting) for the session."""
+        with self._lock:
+            process = self.loops.get(session_id)
+        return process is not None and (process.started_s is None or process.is_alive())
 
     def discard(self, session_id: int) -> None:
         """Stop the session's device loop, if it has one."""

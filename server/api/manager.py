@@ -381,6 +381,19 @@ class ControlPlane:
     # -- parameters ---------------------------------------------------------------------------
     def update_parameters(self, session_id: int, params: Parameters) -> ManagedSession:
         session = self.get(session_id)
+        c = session.config
+        moves = {"frame": (params.frame, c.frame),
+                 "placement_position": (params.placement_position, c.placement_position),
+                 "placement_orientation": (params.placement_orientation,
+                                           c.placement_orientation)}
+        changed = [k for k, (new, now) in moves.items()
+                   if new is not None and (new if k == "frame" else tuple(new))
+                   != (now if k == "frame" else tuple(now))]
+        if changed and self.devices.attached(session_id):
+            # The device loop converts its poses with the frame and placement it started
+            # with: changing them under it would misplace the burr and misread k and b.
+            raise ApiError(409, f"session {session_id} drives a device: detach it (DELETE "
+                                f"…/device) before changing {', '.join(changed)}")
         with session.lock:
             self._apply_parameters(session, params, check_bone=True)
         return session

@@ -2,15 +2,35 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from fastapi import APIRouter, Request
 
 from ..devices.loop import DeviceLoopConfig
 from ..devices.mapping import WorkspaceMap, bone_top_centre
-from ..devices.registry import HAPTIC, check_spec
-from .models import DeviceAttach
+from ..devices.registry import HAPTIC, PATH_OPTIONS, check_spec, format_spec, parse_spec
+from .manager import ApiError
+from .models import DeviceAttach, Parameters
 from .routes_sessions import SessionPath, _plane
 
 router = APIRouter(tags=["devices"])
+
+
+def confined(spec: str, data_dir: Path) -> str:
+    """``spec`` with its file options (``registry.PATH_OPTIONS``: a WAV to write, the Falcon's
+    firmware to read) resolved inside the server's data directory: over REST a client names
+    files there, never elsewhere on the server's machine (422 otherwise)."""
+    name, options = parse_spec(spec)
+    root = data_dir.expanduser().resolve()
+    for key in PATH_OPTIONS:
+        if key in options:
+            path = (root / str(options[key])).resolve()
+            if not path.is_relative_to(root):
+                raise ApiError(422, f"{key}={options[key]!r}: over REST, files are named "
+                                    f"relative to the server's data directory ({root}) and "
+                                    "must stay inside it")
+            options[key] = str(path)
+    return format_spec(name, options)
 
 
 @router.get("/devices")
@@ -34,30 +54,41 @@ def attach_device(request: Request, body: DeviceAttach,
     in, no permission, a vendor library or the Falcon's firmware missing), 409 if the session
     already drives one."""
     plane = _plane(request)
-    attachments = plane.devices
+    session = plane.ready(session_id)
+    try:
+        device = confined(body.device, plane.data_dir)
+        actuator = confined(body.actuator, plane.data_dir) if body.actuator else None
+        name, options = check_spec(device, "haptic")
+        if actuator:
+            check_spec(actuator, "actuator")
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
+    # The session renders the coupled output for the device's profile (unless it already has
+    # a device profile) before the loop's first pose; undone if the device cannot be opened.
+    profile = HAPTIC[name].profile_for(options)
+    set_profile = session.device is None and profile is not None
+    if set_profile:
+        plane.update_parameters(session_id, Parameters(device=profile))
 
     def make_config(session, host: str, port: int) -> DeviceLoopConfig:
-        name, options = check_spec(body.device, "haptic")
-        if body.actuator:
-            check_spec(body.actuator, "actuator")
-        profile = HAPTIC[name].profile_for(options)
-        if session.device is None and profile is not None:
-            from .models import Parameters
-
-            plane.update_parameters(session.id, Parameters(device=profile))
         placement = body.placement_mm or bone_top_centre(session.bone_info)
         c = session.config
         return DeviceLoopConfig(
-            device=body.device, host=host, port=port, session=session.id,
+            device=device, host=host, port=port, session=session.id,
             key_hex=session.key_hex, frame=c.frame,
             placement_position=tuple(c.placement_position),
             placement_orientation=tuple(c.placement_orientation),
             workspace=WorkspaceMap(tuple(placement), tuple(body.rotation),
                                    body.workspace_scale),
-            actuator=body.actuator, rpm=body.rpm, spindle=body.spindle, home=body.home,
+            actuator=actuator, rpm=body.rpm, spindle=body.spindle, home=body.home,
             stale_s=body.stale_ms * 1e-3)
 
-    return attachments.attach(plane, session_id, make_config).status()
+    try:
+        return plane.devices.attach(plane, session_id, make_config).status()
+    except ApiError:
+        if set_profile:
+            plane.update_parameters(session_id, Parameters(device="none"))
+        raise
 
 
 @router.get("/sessions/{session_id}/device")

@@ -77,6 +77,11 @@ def add_loop_options(p: argparse.ArgumentParser) -> None:
                         "held. Default on")
     p.add_argument("--rpm", type=float_in(-1e6, 1e6, "rpm"), default=60_000.0,
                    help="spindle speed sent with each pose. Default 60000")
+    p.add_argument("--rotation", default=None, metavar="X,Y,Z,W",
+                   help="the device frame's orientation in the bone's frame, a quaternion. "
+                        "Default identity (device up = bone up, toward the user = bone +x)")
+    p.add_argument("--stale-ms", type=float_in(1.0, 50.0, "watchdog", "ms"), default=30.0,
+                   help="zero force when the newest reply is older than this. Default 30")
     p.add_argument("--no-home", action="store_true", help="do not home the device first")
 
 
@@ -93,12 +98,38 @@ def loop_config(args: argparse.Namespace, device: str, host: str, port: int, ses
         check_spec(args.actuator, "actuator")
     placement = (parse_vector(args.placement_mm, 3, "--placement-mm")
                  if args.placement_mm else bone_top_centre(bone_info))
+    rotation = (parse_vector(args.rotation, 4, "--rotation") if args.rotation
+                else (0.0, 0.0, 0.0, 1.0))
     return DeviceLoopConfig(
         device=device, host=host, port=port, session=session, key_hex=key_hex, frame=frame,
         placement_position=tuple(placement_position),
         placement_orientation=tuple(placement_orientation),
-        workspace=WorkspaceMap(placement, scale=args.workspace_scale),
-        actuator=args.actuator, rpm=args.rpm, spindle=args.spindle, home=not args.no_home)
+        workspace=WorkspaceMap(placement, rotation, args.workspace_scale),
+        actuator=args.actuator, rpm=args.rpm, spindle=args.spindle, home=not args.no_home,
+        stale_s=args.stale_ms * 1e-3)
+
+
+def _session_settings(c) -> dict:
+    """The session's bone, frame and placement over REST ({} without a REST URL and token,
+    or if the server does not answer)."""
+    if not (c.http_url and c.token):
+        return {}
+    import httpx
+
+    headers = {"Authorization": f"Bearer {c.token}"}
+    try:
+        with httpx.Client(base_url=c.http_url + "/v1", headers=headers, timeout=10.0) as api:
+            view = api.get(f"/sessions/{c.session}")
+            params = api.get(f"/sessions/{c.session}/parameters")
+            view.raise_for_status()
+            params.raise_for_status()
+    except httpx.HTTPError as exc:
+        print(f"note: could not read session {c.session} over REST ({exc})", file=sys.stderr)
+        return {}
+    p = params.json()
+    return {"bone": view.json().get("bone"), "frame": p["frame"],
+            "placement_position": tuple(p["placement_position"]),
+            "placement_orientation": tuple(p["placement_orientation"])}
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -146,10 +177,15 @@ def _run(args: argparse.Namespace) -> int:
                                   args.frame or "si_mm")
     else:
         c = connection.read(Path(args.connection) if args.connection else None)
-    config = loop_config(args, args.device, c.host, c.udp_port, c.session, c.key_hex, c.frame,
-                         None)
-    if not args.placement_mm:
-        print("note: no --placement-mm: the workspace centre sits at the frame's origin",
+    session = _session_settings(c)
+    config = loop_config(args, args.device, c.host, c.udp_port, c.session, c.key_hex,
+                         session.get("frame", c.frame), session.get("bone"),
+                         session.get("placement_position", (0.0, 0.0, 0.0)),
+                         session.get("placement_orientation", (0.0, 0.0, 0.0, 1.0)))
+    if not session:
+        print("note: the session's bone, frame and placement are unknown without its REST "
+              "URL and token (the connection file has them): the workspace centre sits at "
+              "the server frame's origin unless --placement-mm says otherwise",
               file=sys.stderr)
     process = DeviceProcess(config)
     process.start()

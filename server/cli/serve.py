@@ -275,7 +275,13 @@ def _start_device(say, plane, session, args: argparse.Namespace) -> None:
         process = plane.devices.attach(plane, session.id, make_config)
     except ApiError as exc:
         raise RuntimeError(f"--haptic-device {args.haptic_device}: {exc.detail}") from None
-    for text in process.drain_events():
+    # The loop says what it opened once it has; the console shows the rest as it comes.
+    deadline = time.monotonic() + 2.0
+    while process.event_count == 0 and time.monotonic() < deadline:
+        process.drain_events()
+        time.sleep(0.02)
+    process.console_seen, texts = process.events_since(0)
+    for text in texts:
         say(f"  device: {text}")
 
 
@@ -286,7 +292,8 @@ def _report(stats, session_id: int, done: threading.Event, say, devices=None) ->
     while not done.wait(STATUS_INTERVAL_S):
         if devices is not None:
             for sid, process in list(devices.loops.items()):
-                for text in process.drain_events():
+                process.console_seen, texts = process.events_since(process.console_seen)
+                for text in texts:
                     say(f"device (session {sid}): {text}")
         latest = stats.latest
         if latest is None:

@@ -21,21 +21,21 @@ Watchdog: the renderer zeroes the force when the newest model is older than ``st
 (30 ms: no replies because the stream stopped, the hot loop died or the network failed), and
 the next cycle sends that zero. The actuator silences itself on its own watchdog (50 ms
 without an update), and is silenced at once when the model goes stale. A USB error or an
-unplugged device ends the loop (state ``failed``, the reason in the events); SIGTERM, SIGINT,
-the parent's death (Linux: PR_SET_PDEATHSIG) and any exception end it too, always through
-``device.close()``, which commands zero force.
+unplugged device ends the loop (state ``failed``, the reason in the events); SIGTERM, SIGINT
+(also while opening or homing), the server process's death (checked every cycle) and any
+exception end it too, always through ``device.close()``, which commands zero force. What
+software cannot cover: SIGKILL of this process (or the OOM killer) leaves the device with its
+last command, and whether a device then holds it is up to its firmware.
 """
 
 from __future__ import annotations
 
-import ctypes
 import gc
 import math
 import os
 import select
 import signal
 import socket
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -52,6 +52,12 @@ from .registry import create_actuator, create_device
 from .render import C_PASSIVITY, C_SATURATED, C_TRIPS, M_T_ARRIVAL, STALE_S, CouplingRenderer
 
 SPINDLE_MODES = ("on", "off", "button")
+#: This many non-finite readings in a row end the loop (the device is failing).
+BAD_READINGS_LIMIT = 50
+
+
+class StopRequested(Exception):
+    """SIGTERM or SIGINT while the device was being opened or homed."""
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,11 @@ class DeviceLoop:
         self.stats = stats
         self.say = say
         self.stop_requested = False
+        #: True once the servo loop runs (a stop request then ends it at the next cycle).
+        self.serving = False
+        #: The server that started this process: when it dies the loop stops (Linux's
+        #: PR_SET_PDEATHSIG follows the starting *thread*, and REST workers come and go).
+        self.parent_pid = os.getppid()
         self.device = None
         self.actuator = None
         self.sock: socket.socket | None = None
@@ -178,11 +189,16 @@ class DeviceLoop:
         s[st.ST_T_START] = deadline
         t_prev = None
         pushing = False  # whether the last force sent was not zero
+        bad_run = 0  # non-finite readings in a row
         self.silenced = True
         self.fresh_sample = -1.0  # sample time of a reply whose force goes out next cycle
         gc.collect()
         gc.freeze()
+        self.serving = True
         while not self.stop_requested:
+            if os.getppid() != self.parent_pid:
+                self.say("the server process is gone: stopping")
+                break
             if self.fresh_sample >= 0.0:
                 st.hist_add(s, st.HIST_LATENCY, (time.monotonic() - self.fresh_sample) * 1e6)
                 self.fresh_sample = -1.0
@@ -192,6 +208,18 @@ class DeviceLoop:
             if pushing and not f_device.any():
                 s[st.ST_T_DEVICE_ZERO] = now  # the watchdog's zero has reached the device
             pushing = bool(f_device.any())
+            if not (np.isfinite(state.position_mm).all()
+                    and np.isfinite(state.velocity_mm_s).all()):
+                # A reading the back-end could not make sense of: nothing is rendered from
+                # it (zero force this cycle), and a run of them is the device failing.
+                s[st.ST_BAD_READINGS] += 1
+                bad_run += 1
+                if bad_run >= BAD_READINGS_LIMIT:
+                    raise DeviceError(f"{bad_run} unusable readings in a row from the device")
+                f_device = np.zeros(3)
+                deadline = time.monotonic() + period
+                continue
+            bad_run = 0
             x = mapping.point(axes @ state.position_mm)
             v = mapping.vector(axes @ state.velocity_mm_s)
             awaited = -1
@@ -327,17 +355,6 @@ class DeviceLoop:
         self.stats[st.ST_LIVE] = 0.0
 
 
-def _die_with_parent() -> None:
-    """Linux: SIGTERM this process when its parent dies (a killed server must not leave a
-    device running)."""
-    if sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-        except (OSError, AttributeError):
-            pass
-
-
 def _try_realtime() -> bool:
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
@@ -353,7 +370,6 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
         raw_stats: a ``multiprocessing.RawArray('d', stats.N_SLOTS)``.
         events: a multiprocessing queue for one-line events (or None: print them).
     """
-    _die_with_parent()
     stats = np.frombuffer(raw_stats, dtype=np.float64)
 
     def say(text: str) -> None:
@@ -366,6 +382,8 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
 
     def stop(signum, frame) -> None:
         loop.stop_requested = True
+        if not loop.serving:  # opening or homing: unwind now, through close()
+            raise StopRequested
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
@@ -375,6 +393,8 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
             say("servo loop: SCHED_FIFO")
         loop.open()
         loop.run()
+    except StopRequested:
+        say("stopped before the device was ready")
     except DeviceDisconnected as exc:
         failed = True
         say(f"failed: the device was disconnected ({exc})")

@@ -36,6 +36,12 @@ class DeviceProcess:
         self._process = ctx.Process(target=run, args=(config, self._raw, self._events),
                                     name="burrforce-device", daemon=True)
         self.events: collections.deque[tuple[float, str]] = collections.deque(maxlen=50)
+        #: Events received so far (``events`` keeps the last 50): a reader that must see
+        #: every one (serve's console) keeps its own count (:meth:`events_since`).
+        self.event_count = 0
+        #: How many events a console has shown (``burrforce serve``).
+        self.console_seen = 0
+        self._events_lock = threading.Lock()
         self.started_s: float | None = None
 
     def start(self, env: dict[str, str] | None = None) -> None:
@@ -59,16 +65,27 @@ class DeviceProcess:
         return self._process.is_alive()
 
     def drain_events(self) -> list[str]:
-        """New events since the last call (also kept in ``events``)."""
+        """Events that arrived since any reader last drained (also kept in ``events``)."""
         new = []
-        while True:
-            try:
-                text = self._events.get_nowait()
-            except (queue.Empty, OSError, ValueError):
-                break
-            self.events.append((time.time(), text))
-            new.append(text)
+        with self._events_lock:
+            while True:
+                try:
+                    text = self._events.get_nowait()
+                except (queue.Empty, OSError, ValueError):
+                    break
+                self.events.append((time.time(), text))
+                self.event_count += 1
+                new.append(text)
         return new
+
+    def events_since(self, count: int) -> tuple[int, list[str]]:
+        """(events received so far, the texts of those after the first ``count``) — for a
+        reader that must not miss one whoever else drains."""
+        self.drain_events()
+        with self._events_lock:
+            missed = self.event_count - count
+            texts = [text for _, text in list(self.events)[-missed:]] if missed > 0 else []
+            return self.event_count, texts
 
     def wait_state(self, states: tuple[str, ...], timeout_s: float) -> str:
         """Wait until the loop is in one of ``states`` (or has exited); returns the state."""

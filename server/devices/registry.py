@@ -14,7 +14,7 @@ import inspect
 from dataclasses import dataclass
 
 from .actuators.base import Actuator
-from .base import HapticDevice
+from .base import DeviceError, HapticDevice
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,20 @@ def parse_spec(spec: str) -> tuple[str, dict[str, object]]:
     return name.strip(), options
 
 
+def format_spec(name: str, options: dict[str, object]) -> str:
+    """The spec string of ``name`` with ``options`` (the inverse of :func:`parse_spec`)."""
+    for key, value in options.items():
+        if "," in str(value):
+            raise ValueError(f"option {key}={value!r}: a spec's values cannot hold a comma")
+    parts = ",".join(f"{k}={str(v).lower() if isinstance(v, bool) else v}"
+                     for k, v in options.items())
+    return f"{name}:{parts}" if parts else name
+
+
+#: Options that name files (the wav actuator's output, the Falcon's firmware).
+PATH_OPTIONS = ("path", "firmware")
+
+
 def _value(text: str) -> object:
     lowered = text.lower()
     if lowered in ("true", "yes", "on"):
@@ -116,7 +130,7 @@ def _construct(table: dict[str, Backend], kind: str, name: str, options: dict) -
                          f"{', '.join(accepted) or 'none'}")
     try:
         return cls(**options)
-    except TypeError as exc:
+    except (TypeError, DeviceError) as exc:  # a bad option (a firmware file that is not one)
         raise ValueError(f"{kind} {name!r}: {exc}") from None
 
 

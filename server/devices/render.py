@@ -54,7 +54,7 @@ N_MODEL = 14
 # -- parameters --------------------------------------------------------------------------------
 P_MAX_FORCE = 0  # N
 P_MAX_SLEW = 1  # N/s
-P_MAX_DAMPING = 2  # N·s/mm: bound of b + the controller's damping
+P_MAX_DAMPING = 2  # N·s/mm: bound of b, and (separately) of the controller's damping
 P_MAX_STIFFNESS = 3  # N/mm: bound of k as the device feels it
 P_STALE = 4  # s
 P_MAX_AGE = 5  # s: extrapolation is capped at this age
@@ -106,7 +106,9 @@ def render(params, model, state, counters, x_mm, v_mm_s, t_s, out_N):
         work = 0.0  # the last force over this tick's displacement: what the device got
         for i in range(3):
             work += state[S_FORCE + i] * (x_mm[i] - state[S_X_PREV + i])
-        state[S_ENERGY] = min(state[S_ENERGY] - work, params[P_RESERVE])
+        energy = min(state[S_ENERGY] - work, params[P_RESERVE])
+        # A non-finite reading must not poison the observer for good.
+        state[S_ENERGY] = energy if math.isfinite(energy) else 0.0
     for i in range(3):
         state[S_X_PREV + i] = x_mm[i]
     state[S_HAVE_PREV] = 1.0

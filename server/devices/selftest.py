@@ -13,11 +13,16 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..haptics.limits import limit_force
 from .base import DeviceState
 from .registry import create_device
 
 #: The spring's share of the device's rated stiffness and damping: gentle, clearly felt.
 SPRING_SHARE = 0.1
+#: Its force never exceeds this share of the device's maximum, and fades in over RAMP_S (a
+#: grip left far from the centre after homing must not be yanked back).
+FORCE_SHARE = 0.25
+RAMP_S = 1.0
 
 
 def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
@@ -47,9 +52,11 @@ def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
             say("homed")
         k = SPRING_SHARE * info.limits.max_stiffness_N_mm
         b = SPRING_SHARE * info.limits.max_damping_N_s_mm
-        say(f"rendering a gentle spring to the workspace centre ({k:.3g} N/mm) for "
+        say(f"rendering a gentle spring to the workspace centre ({k:.3g} N/mm, at most "
+            f"{FORCE_SHARE * info.limits.max_force_N:.3g} N, fading in over {RAMP_S:g} s) for "
             f"{seconds:g} s: move the grip to feel it (Ctrl-C stops)")
         period = 1.0 / info.servo_rate_hz
+        cap_N = FORCE_SHARE * info.limits.max_force_N
         force = np.zeros(3)
         periods: list[float] = []
         lo = np.full(3, np.inf)
@@ -71,7 +78,13 @@ def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
             lo = np.minimum(lo, state.position_mm)
             hi = np.maximum(hi, state.position_mm)
             buttons_seen |= state.buttons
-            force = -k * state.position_mm - b * state.velocity_mm_s
+            spring = -k * state.position_mm - b * state.velocity_mm_s
+            spring *= min((now - t0) / RAMP_S, 1.0)
+            if np.isfinite(spring).all():
+                limit_force(spring, force, cap_N, info.limits.max_slew_N_s * period)
+                force = spring
+            else:
+                force = np.zeros(3)
             peak = max(peak, float(np.linalg.norm(force)))
             if now >= next_print:
                 p = state.position_mm

@@ -36,6 +36,7 @@ ST_LAST_NOTICE = 23  # error code of the last NOTICE (0: none)
 ST_T_LAST_REPLY = 25  # s, monotonic: arrival of the newest good reply
 ST_MODEL_AGE = 26  # s: age of the model rendered last cycle
 ST_T_DEVICE_ZERO = 27  # s, monotonic: when the device was last sent zero after a force
+ST_BAD_READINGS = 28  # non-finite positions or velocities from the device
 N_SCALARS = 32
 
 HIST_BIN_US = 10.0
@@ -48,7 +49,7 @@ N_SLOTS = HIST_LATENCY + HIST_BINS + 1
 COUNTERS = {"cycles": ST_CYCLES, "overruns": ST_OVERRUNS, "saturations": ST_SATURATED,
             "watchdog_trips": ST_TRIPS, "poses_sent": ST_SENT, "replies": ST_REPLIES,
             "error_replies": ST_ERROR_REPLIES, "notices": ST_NOTICES, "refused": ST_REFUSED,
-            "passivity_cycles": ST_PASSIVITY}
+            "passivity_cycles": ST_PASSIVITY, "bad_readings": ST_BAD_READINGS}
 
 
 def hist_add(stats: np.ndarray, base: int, value_us: float) -> None:

@@ -20,7 +20,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import usb.backend.libusb1
@@ -41,7 +40,7 @@ from ..base import (
 )
 from ..usb import libusb_backend
 from . import protocol as P
-from .firmware import FirmwareError, ensure_firmware
+from .firmware import ensure_firmware, read_firmware_image
 from .ftdi import FtdiLink, map_usb_error
 from .kinematics import (
     WORKSPACE_CENTRE_M,
@@ -109,9 +108,8 @@ class FalconDevice(HapticDevice):
         super().__init__()
         if isinstance(index, bool) or not isinstance(index, int) or index < 0:
             raise ValueError(f"Falcon index must be an integer >= 0, got {index!r}")
-        if firmware is not None and not Path(firmware).expanduser().is_file():
-            raise FirmwareError(f"Falcon firmware image {firmware} does not exist or is not "
-                                "a file")
+        if firmware is not None:
+            read_firmware_image(firmware)  # refuse a file that is no image before any USB
         self.index = index
         self.firmware = firmware
         self._backend = backend
