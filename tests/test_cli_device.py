@@ -118,3 +118,26 @@ def test_serve_with_a_haptic_device(tmp_path):
         if serve.poll() is None:
             serve.kill()
             serve.wait()
+
+
+def test_device_run_drives_a_running_servers_session(tmp_path):
+    from burrforce.server.api.config import ServeConfig
+    from burrforce.server.api.models import Parameters
+    from burrforce.server.api.stack import ServerStack
+
+    token = "device-run-token-0123456789abcdef"
+    with ServerStack(ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path / "data"),
+                     token) as stack:
+        source = stack.plane.resolve("phantom:workpiece", None, 0.1)
+        session = stack.add_session(source, Parameters(), session_id=3, key_hex="ab" * 32)
+        host, port = stack.udp_address
+        conn = connection.write(connection.Connection(host, port, 3, "ab" * 32, "si_mm", 0.1,
+                                                      stack.url, token), tmp_path / "c.json")
+        out = _run("device", "run", "sim:hand=groove,depth_mm=4", "--connection", str(conn),
+                   "--seconds", "3")
+        assert out.returncode == 0, out.stderr
+        assert "coupled output for the generic profile" in out.stderr
+        assert out.stdout.splitlines()[-1].startswith("stopped:"), out.stdout
+        assert stack.plane.get(3).device.name == "generic"
+        assert stack.plane.session_state(3)["accepted"] > 1000
+        assert session.bone_info is not None

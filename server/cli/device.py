@@ -109,9 +109,10 @@ def loop_config(args: argparse.Namespace, device: str, host: str, port: int, ses
         stale_s=args.stale_ms * 1e-3)
 
 
-def _session_settings(c) -> dict:
-    """The session's bone, frame and placement over REST ({} without a REST URL and token,
-    or if the server does not answer)."""
+def _session_settings(c, profile: str | None) -> dict:
+    """The session's bone, frame and placement over REST, having made its output coupled
+    for the device's ``profile`` if it had no device profile ({} without a REST URL and
+    token, or if the server does not answer)."""
     if not (c.http_url and c.token):
         return {}
     import httpx
@@ -123,6 +124,13 @@ def _session_settings(c) -> dict:
             params = api.get(f"/sessions/{c.session}/parameters")
             view.raise_for_status()
             params.raise_for_status()
+            if params.json()["device"] is None and profile is not None:
+                # A raw session's force would be rendered as it is: it buzzes on a device.
+                params = api.patch(f"/sessions/{c.session}/parameters",
+                                   json={"device": profile})
+                params.raise_for_status()
+                print(f"session {c.session}: coupled output for the {profile} profile",
+                      file=sys.stderr)
     except httpx.HTTPError as exc:
         print(f"note: could not read session {c.session} over REST ({exc})", file=sys.stderr)
         return {}
@@ -177,16 +185,20 @@ def _run(args: argparse.Namespace) -> int:
                                   args.frame or "si_mm")
     else:
         c = connection.read(Path(args.connection) if args.connection else None)
-    session = _session_settings(c)
+    from ..devices.registry import HAPTIC, check_spec
+
+    name, options = check_spec(args.device, "haptic")
+    session = _session_settings(c, HAPTIC[name].profile_for(options))
     config = loop_config(args, args.device, c.host, c.udp_port, c.session, c.key_hex,
                          session.get("frame", c.frame), session.get("bone"),
                          session.get("placement_position", (0.0, 0.0, 0.0)),
                          session.get("placement_orientation", (0.0, 0.0, 0.0, 1.0)))
     if not session:
-        print("note: the session's bone, frame and placement are unknown without its REST "
-              "URL and token (the connection file has them): the workspace centre sits at "
-              "the server frame's origin unless --placement-mm says otherwise",
-              file=sys.stderr)
+        print("note: without the session's REST URL and token (the connection file has "
+              "them) its bone, frame and placement are unknown — the workspace centre sits at "
+              "the server frame's origin unless --placement-mm says otherwise — and its "
+              "output must already be coupled for a device (parameters.device): a raw "
+              "output's force is rendered as it is", file=sys.stderr)
     process = DeviceProcess(config)
     process.start()
     t0 = time.monotonic()

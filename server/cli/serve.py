@@ -137,6 +137,9 @@ def main(args: argparse.Namespace) -> int:
              "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
              "token": args.token, "data_dir": args.data_dir,
              "bone_library": args.bone_library}
+    if args.demo and args.haptic_device:
+        raise ValueError("--demo and --haptic-device both stream the default session: choose "
+                         "one (the device cuts with its own hand)")
     config = load_config(args.config, flags)
     if config.no_auth and not _is_loopback(config.host):
         raise ValueError(f"--no-auth is for loopback development; {config.host} is reachable "
@@ -193,7 +196,7 @@ def main(args: argparse.Namespace) -> int:
             context["conn"] = c
             context["path"] = connection.write(c, args.connection_file)
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
-                    context["path"])
+                    context["path"], args.haptic_device)
             if args.demo:
                 _run_demo(say, context["path"], done)
             _report(stack.stats, session.id, done, say, plane.devices)
@@ -221,7 +224,8 @@ def _ignore(signum: int, frame: object) -> None:
 
 
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
-            new_token: bool, config: ServeConfig, conn_path: Path) -> None:
+            new_token: bool, config: ServeConfig, conn_path: Path,
+            haptic_device: str | None = None) -> None:
     say(f"ready in {elapsed_s:.1f} s")
     output = f"coupled output (device {config.device})" if config.device else "raw force"
     say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
@@ -235,10 +239,16 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     else:
         say(f"  token in {Path(config.data_dir).expanduser() / TOKEN_FILE}")
     say(f"  connection file {conn_path}")
+    if haptic_device:
+        say(f"  DEVICE {haptic_device} streams session {c.session}   (status: GET "
+            f"{url}/v1/sessions/{c.session}/device)")
     token_hint = ("TOKEN=<the configured token>" if config.token else
                   f"TOKEN=$(cat {Path(config.data_dir).expanduser() / TOKEN_FILE})")
-    say("try:  burrforce client demo          (cuts a groove and prints the forces)")
-    say(f"      {token_hint}")
+    if haptic_device:  # a second stream on the device's session would fight it
+        say(f"try:  {token_hint}")
+    else:
+        say("try:  burrforce client demo          (cuts a groove and prints the forces)")
+        say(f"      {token_hint}")
     say(f"      curl -H \"Authorization: Bearer $TOKEN\" -X PATCH -H 'Content-Type: "
         f"application/json' -d '{{\"us_n_mm2\": 1610}}' {url}/v1/sessions/{c.session}/"
         "parameters")
@@ -282,7 +292,7 @@ def _start_device(say, plane, session, args: argparse.Namespace) -> None:
         time.sleep(0.02)
     process.console_seen, texts = process.events_since(0)
     for text in texts:
-        say(f"  device: {text}")
+        say(f"  {text}")
 
 
 def _report(stats, session_id: int, done: threading.Event, say, devices=None) -> None:

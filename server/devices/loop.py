@@ -160,6 +160,7 @@ class DeviceLoop:
         self.renderer = CouplingRenderer(info.limits, c.workspace.scale, c.stale_s,
                                          passivity=c.passivity)
         self.renderer.warm_up()
+        self.device.cycle(np.zeros(3))  # the back-end's kernels load before the first period
         self.transform = Transform(frame(c.frame), c.placement_position,
                                    c.placement_orientation)
         self.rules = SessionRules(c.session, c.key_hex, int.from_bytes(os.urandom(4), "big"))
