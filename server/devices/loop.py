@@ -193,6 +193,7 @@ class DeviceLoop:
         bad_run = 0  # non-finite readings in a row
         self.silenced = True
         self.fresh_sample = -1.0  # sample time of a reply whose force goes out next cycle
+        self.waited = 0.0  # s this cycle spent waiting for the reply
         gc.collect()
         gc.freeze()
         self.serving = True
@@ -203,8 +204,10 @@ class DeviceLoop:
             if self.fresh_sample >= 0.0:
                 st.hist_add(s, st.HIST_LATENCY, (time.monotonic() - self.fresh_sample) * 1e6)
                 self.fresh_sample = -1.0
+            t_io = time.monotonic()
             state = device.cycle(f_device)
             now_ns = time.monotonic_ns()
+            st.hist_add(s, st.HIST_IO, (now_ns * 1e-9 - t_io) * 1e6)
             now = now_ns * 1e-9
             if pushing and not f_device.any():
                 s[st.ST_T_DEVICE_ZERO] = now  # the watchdog's zero has reached the device
@@ -236,6 +239,7 @@ class DeviceLoop:
                 except (BlockingIOError, ConnectionRefusedError):
                     s[st.ST_REFUSED] += 1
             deadline += period
+            self.waited = 0.0
             self._receive(awaited, deadline)
             t_render = time.monotonic()
             f = renderer.render(x, v, t_render)
@@ -260,6 +264,8 @@ class DeviceLoop:
             if t_prev is not None:
                 st.hist_add(s, st.HIST_PERIOD, (now - t_prev) * 1e6)
             t_prev = now
+            # The loop's own work this cycle: everything but the device's I/O and waiting.
+            st.hist_add(s, st.HIST_WORK, (time.monotonic() - now - self.waited) * 1e6)
             # Pacing: sleep to the deadline; never try to catch up a burst.
             late = time.monotonic() - deadline
             if late > 0.5 * period:
@@ -277,7 +283,9 @@ class DeviceLoop:
             remaining = deadline - time.monotonic()
             if got or remaining <= 0.0 or awaited < 0:
                 return
+            t_wait = time.monotonic()
             select.select((sock,), (), (), remaining)
+            self.waited += time.monotonic() - t_wait
 
     def _take_replies(self, awaited: int) -> bool:
         """Every datagram already arrived: the newest good reply's coupling model to the

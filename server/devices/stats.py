@@ -2,10 +2,11 @@
 plane reads (no lock: each slot is one aligned 8-byte store, and a reader that sees a counter
 one cycle old loses nothing).
 
-Layout: scalar slots (``ST_*``), then three histograms of 10 µs bins, each ``HIST_BINS`` bins
-plus one for everything longer: the servo period; the round trip (a pose's sampling to the
-loop reading its reply); and pose-to-force (a pose's sampling to the device being sent the
-first force rendered from its reply).
+Layout: scalar slots (``ST_*``), then histograms of 10 µs bins, each ``HIST_BINS`` bins plus
+one for everything longer: the servo period; the round trip (a pose's sampling to the loop
+reading its reply); pose-to-force (a pose's sampling to the device being sent the first force
+rendered from its reply); the device's I/O per cycle; and the loop's own work per cycle
+(everything but the I/O, waiting for the reply and sleeping).
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ HIST_BINS = 2000  # 20 ms; one more bin holds everything longer
 HIST_PERIOD = N_SCALARS
 HIST_RTT = HIST_PERIOD + HIST_BINS + 1
 HIST_LATENCY = HIST_RTT + HIST_BINS + 1
-N_SLOTS = HIST_LATENCY + HIST_BINS + 1
+HIST_IO = HIST_LATENCY + HIST_BINS + 1
+HIST_WORK = HIST_IO + HIST_BINS + 1
+N_SLOTS = HIST_WORK + HIST_BINS + 1
 
 COUNTERS = {"cycles": ST_CYCLES, "overruns": ST_OVERRUNS, "saturations": ST_SATURATED,
             "watchdog_trips": ST_TRIPS, "poses_sent": ST_SENT, "replies": ST_REPLIES,
@@ -79,6 +82,8 @@ def summary(stats: np.ndarray) -> dict:
     p50, p99 = hist_percentiles(s[HIST_PERIOD:HIST_PERIOD + HIST_BINS + 1])
     r50, r99 = hist_percentiles(s[HIST_RTT:HIST_RTT + HIST_BINS + 1])
     f50, f99 = hist_percentiles(s[HIST_LATENCY:HIST_LATENCY + HIST_BINS + 1])
+    i50, i99 = hist_percentiles(s[HIST_IO:HIST_IO + HIST_BINS + 1])
+    w50, w99 = hist_percentiles(s[HIST_WORK:HIST_WORK + HIST_BINS + 1])
     return {
         "state": state,
         "counters": {name: int(s[i]) for name, i in COUNTERS.items()},
@@ -86,6 +91,8 @@ def summary(stats: np.ndarray) -> dict:
         "period_p50_us": p50, "period_p99_us": p99,
         "round_trip_p50_us": r50, "round_trip_p99_us": r99,
         "pose_to_force_p50_us": f50, "pose_to_force_p99_us": f99,
+        "device_io_p50_us": i50, "device_io_p99_us": i99,
+        "loop_work_p50_us": w50, "loop_work_p99_us": w99,
         "live": bool(s[ST_LIVE]),
         "position_mm": [float(x) for x in s[ST_POSITION:ST_POSITION + 3]],
         "force_N": [float(x) for x in s[ST_FORCE:ST_FORCE + 3]],
