@@ -19,7 +19,7 @@ from burrforce.server.devices import stats as st
 from burrforce.server.devices.loop import DeviceLoopConfig
 from burrforce.server.devices.mapping import WorkspaceMap, bone_top_centre
 from burrforce.server.devices.process import DeviceProcess
-from burrforce.server.devices.registry import create_device, parse_spec
+from burrforce.server.devices.registry import create_actuator, create_device, parse_spec
 
 TOKEN = "device-loop-test-token-0123456789"
 KEY = "11" * 32
@@ -246,7 +246,7 @@ def test_deleting_a_session_stops_its_device(stack):
     assert not process.is_alive() and process.status()["state"] == "stopped"
 
 
-def test_specs_parse_and_bad_ones_are_refused():
+def test_specs_parse_and_bad_ones_are_refused(tmp_path):
     assert parse_spec("falcon:index=1,firmware=/x/nvent.bin,home=false") == (
         "falcon", {"index": 1, "firmware": "/x/nvent.bin", "home": False})
     assert parse_spec(" sim ") == ("sim", {})
@@ -257,6 +257,11 @@ def test_specs_parse_and_bad_ones_are_refused():
         create_device("sim:bogus=1")
     with pytest.raises(ValueError, match="unknown haptic device"):
         create_device("phantom-omni")
+    # Options arrive as text: an actuator's perceptual mode by name.
+    assert create_actuator(f"wav:path={tmp_path / 'a.wav'},perceptual=am").perceptual.mode \
+        == "am"
+    with pytest.raises(ValueError, match="perceptual mode"):
+        create_actuator("audio:perceptual=loud")
 
 
 def test_the_emulated_falcon_through_the_device_loop(stack):

@@ -68,7 +68,7 @@ class AudioActuator(Actuator):
     def __init__(self, device: int | str | None = None, *, rate_hz: int = DEFAULT_RATE_HZ,
                  blocksize: int = DEFAULT_BLOCKSIZE, channel: int = 0,
                  channels: int | None = None, full_scale_N: float = 1.0,
-                 watchdog_ms: float = 50.0, perceptual: Perceptual | None = None,
+                 watchdog_ms: float = 50.0, perceptual: Perceptual | str | None = None,
                  latency: str | float = "low") -> None:
         super().__init__(full_scale_N, watchdog_ms)
         if not 8 <= blocksize <= 4096:
@@ -84,7 +84,7 @@ class AudioActuator(Actuator):
         self.channel = int(channel)
         self.channels = int(channels)
         self.latency = latency
-        self.perceptual = perceptual or Perceptual()
+        self.perceptual = Perceptual.of(perceptual)
         self._block_ns = self.blocksize * 1_000_000_000 // self.rate_hz
         self._osc = Oscillator(self.rate_hz, self.perceptual)
         self._mono = np.zeros(self.blocksize, dtype=np.float32)

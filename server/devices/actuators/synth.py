@@ -56,6 +56,18 @@ class Perceptual:
             if not math.isfinite(value) or value <= 0.0:
                 raise ValueError(f"{name} must be finite and > 0, got {value}")
 
+    @classmethod
+    def of(cls, value: Perceptual | str | None) -> Perceptual:
+        """A Perceptual from itself, a mode name (``"am"``: what a device spec's
+        ``perceptual=am`` option gives) or None (off)."""
+        if value is None:
+            return cls()
+        if isinstance(value, str):
+            return cls(value)
+        if not isinstance(value, cls):
+            raise ValueError(f"perceptual must be one of {PERCEPTUAL_MODES}, got {value!r}")
+        return value
+
     def carrier(self, frequency_hz: float) -> tuple[float, float]:
         """(carrier frequency Hz, AM depth 0..1) for the requested frequency."""
         if frequency_hz <= self.corner_hz or self.mode == "off":

@@ -62,7 +62,7 @@ class UsbBoardActuator(Actuator):
     """
 
     def __init__(self, serial: str | None = None, *, full_scale_N: float = 1.0,
-                 watchdog_ms: float = 50.0, perceptual: Perceptual | None = None,
+                 watchdog_ms: float = 50.0, perceptual: Perceptual | str | None = None,
                  max_rate_hz: float = 1000.0, backend: Any = None,
                  write_timeout_ms: int = 20) -> None:
         super().__init__(full_scale_N, watchdog_ms)
@@ -71,7 +71,7 @@ class UsbBoardActuator(Actuator):
         if watchdog_ms < 10:
             raise ValueError(f"watchdog_ms must be ≥ 10 for the board, got {watchdog_ms}")
         self.serial = serial
-        self.perceptual = perceptual or Perceptual()
+        self.perceptual = Perceptual.of(perceptual)
         self.min_interval_ns = int(1e9 / max_rate_hz)
         self.write_timeout_ms = int(write_timeout_ms)
         self._backend = backend

@@ -84,7 +84,7 @@ class WavActuator(Actuator):
     def __init__(self, path: str | os.PathLike, rate_hz: int = 48_000,
                  sample_format: str = "int16", block_frames: int = 48,
                  full_scale_N: float = 1.0, watchdog_ms: float = 50.0,
-                 perceptual: Perceptual | None = None) -> None:
+                 perceptual: Perceptual | str | None = None) -> None:
         super().__init__(full_scale_N, watchdog_ms)
         if sample_format not in SAMPLE_FORMATS:
             raise ValueError(f"sample_format must be one of {SAMPLE_FORMATS}, "
@@ -97,7 +97,7 @@ class WavActuator(Actuator):
         self.rate_hz = int(rate_hz)
         self.sample_format = sample_format
         self.block_frames = int(block_frames)
-        self.perceptual = perceptual or Perceptual()
+        self.perceptual = Perceptual.of(perceptual)
         self._writer: _FloatWavWriter | _PcmWavWriter | None = None
         self._osc: Oscillator | None = None
         self._block = np.zeros(self.block_frames, dtype=np.float32)
