@@ -318,7 +318,13 @@ def _report(stats, session_id: int, done: threading.Event, say, devices=None) ->
             drops = {k: v for k, v in counters.items()
                      if v and k not in ("received", "replied", "noticed")}
             tick = s.get("tick_p99_us")
+            device = ""
+            process = devices.loops.get(session_id) if devices is not None else None
+            if process is not None:
+                d = process.status()
+                device = (f"  device {d['state']} {d['servo_rate_hz'] or 0:.0f} Hz"
+                          + ("" if d["live"] else " (zero force: no fresh reply)"))
             say(f"{rate:6.0f} packets/s  |F| {s.get('last_force_N', 0.0):6.2f} N  removed "
                 f"{removed:8.2f} mm³  tick p99 {tick or 0:5.0f} µs"
-                + (f"  dropped {drops}" if drops else ""))
+                + (f"  dropped {drops}" if drops else "") + device)
         last_received, last_t = received, now
