@@ -221,7 +221,8 @@ class DeviceLoop:
                 if bad_run >= BAD_READINGS_LIMIT:
                     raise DeviceError(f"{bad_run} unusable readings in a row from the device")
                 f_device = np.zeros(3)
-                deadline = time.monotonic() + period
+                time.sleep(period)
+                deadline = time.monotonic()
                 continue
             bad_run = 0
             x = mapping.point(axes @ state.position_mm)
