@@ -66,6 +66,7 @@ def test_bench_device_json_rows():
     for key in ("device", "servo_rate_hz", "period_p50_us", "period_p99_us", "watchdog_ms"):
         assert key in row
     assert row["device"] == "sim" and 0.0 < row["watchdog_ms"] <= 50.0
+    assert row["cycle_cpu_us"] > 0.0
 
 
 def test_serve_with_a_haptic_device(tmp_path):

@@ -72,10 +72,11 @@ def test_the_sim_device_cuts_a_groove_through_the_loop(stack, tmp_path):
     try:
         assert process.wait_state(("running", "failed"), 60.0) == "running", process.status()
         # The groove script reaches the bone after ~0.5 s and cuts for ~3 s.
-        assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 50, 30.0)
+        assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 50
+                     and process.status()["counters"]["cycles"] > 100, 30.0)
         status = process.status()
         c = status["counters"]
-        assert c["cycles"] > 100 and c["poses_sent"] > 100
+        assert c["poses_sent"] >= c["cycles"] - 1
         assert c["replies"] > 0.5 * c["poses_sent"]
         assert status["period_p50_us"] is not None and status["round_trip_p50_us"] is not None
         assert status["vibration"]["frequency_hz"] == pytest.approx(1000.0)

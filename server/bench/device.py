@@ -15,6 +15,8 @@ loop's own statistics (``devices.stats``):
 - ``watchdog_ms``: the hot loop is then killed (SIGKILL) while the device is pushed; the time
   from the newest reply's arrival to the device being sent zero force. ``watchdog_ms`` in
   the rows is the worst of ``--repeats`` such kills (a fresh server each).
+- ``cycle_cpu_us`` (the same in every row): the loop's CPU work per cycle without sockets or
+  a device (``device_cycle``), and with ``--callgrind`` ``cycle_instructions`` per cycle;
 - ``stop_ms`` (emulated Falcon only, one more run): SIGTERM to the device process while the
   device is pushed → the last non-zero motor command the emulated Falcon received, from the
   emulator's own log (and the last command must be zero).
@@ -168,6 +170,40 @@ def bench_device(name: str, seconds: float, repeats: int) -> dict:
             "stop_ms": max(stops) if stops else None}
 
 
+CPU_CYCLES = 3000
+CALLGRIND_CYCLES = (1000, 2000)
+
+
+def cycle_cpu(callgrind: bool) -> dict:
+    """The loop's CPU work per cycle without sockets or a device (``device_cycle``): µs in
+    this process, and with ``callgrind`` the instructions per cycle (valgrind's count for
+    CALLGRIND_CYCLES[1] cycles minus that for CALLGRIND_CYCLES[0], over the difference)."""
+    from .device_cycle import CycleWork
+
+    row = {"cycle_cpu_us": CycleWork(CPU_CYCLES).run(CPU_CYCLES), "cycle_instructions": None}
+    if callgrind:
+        import re
+        import shutil
+        import subprocess
+
+        if shutil.which("valgrind") is None:
+            raise RuntimeError("--callgrind needs valgrind (apt-get install valgrind)")
+        counts = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for n in CALLGRIND_CYCLES:
+                out = subprocess.run(
+                    ["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/cg.out",
+                     sys.executable, "-m", "burrforce.server.bench.device_cycle", str(n)],
+                    capture_output=True, text=True, check=True)
+                m = re.search(r"Collected : (\d+)", out.stderr)
+                if m is None:
+                    raise RuntimeError(f"valgrind printed no count: {out.stderr[-400:]}")
+                counts.append(int(m.group(1)))
+        row["cycle_instructions"] = (counts[1] - counts[0]) / (CALLGRIND_CYCLES[1]
+                                                               - CALLGRIND_CYCLES[0])
+    return row
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "device", help="device loop: servo rate, jitter, pose-to-force latency, watchdog",
@@ -186,6 +222,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
                    help="results directory. Default ./benchmarks")
     p.add_argument("--no-write", action="store_true", help="print only, write no files")
+    p.add_argument("--callgrind", action="store_true",
+                   help="also count the loop's instructions per cycle with valgrind's "
+                        "callgrind (repeatable on a busy machine; about a minute)")
     p.set_defaults(func=main)
 
 
@@ -219,6 +258,13 @@ def write_results(rows: list[dict], out: Path) -> Path:
             f"{_fmt(r['pose_to_force_p50_us'])} / {_fmt(r['pose_to_force_p99_us'])} | "
             f"{_fmt(r['watchdog_ms'], 1)} ({', '.join(f'{w:.1f}' for w in r['watchdog_all_ms'])})"
             f" | {_fmt(r['stop_ms'], 1)} |")
+    for r in rows[:1]:
+        count = r["cycle_instructions"]
+        lines += ["", f"The loop's CPU work per cycle without sockets or a device "
+                  f"(`server/bench/device_cycle.py`: map, POSE, REPLY, render): "
+                  f"{r['cycle_cpu_us']:.1f} µs"
+                  + (f", {count / 1e3:.0f} k instructions (callgrind)" if count else "")
+                  + "."]
     lines += ["", "Device I/O is one force-for-state exchange with the device; loop work is "
               "everything else the loop does in a cycle (pose, replies, render, statistics) "
               "but waiting for the reply and sleeping. The emulated Falcon's I/O is umockdev "
@@ -244,6 +290,10 @@ def main(args: argparse.Namespace) -> int:
         row = bench_device(name, args.seconds, args.repeats)
         say(f"{name}: {row}")
         rows.append(row)
+    cpu = cycle_cpu(args.callgrind)
+    say(f"loop CPU per cycle: {cpu}")
+    for row in rows:
+        row.update(cpu)
     if not args.no_write:
         say(f"results written to {write_results(rows, args.out)}")
     if args.json:
