@@ -265,10 +265,10 @@ def test_specs_parse_and_bad_ones_are_refused(tmp_path):
         create_actuator("audio:perceptual=loud")
 
 
-def test_the_emulated_falcon_through_the_device_loop(stack):
-    """The real Falcon driver (pyusb → libusb → usbfs, emulated by umockdev) in the device
-    loop: it cuts, the watchdog zeroes its motors within 50 ms of the hot loop's death (the
-    emulator's own log of motor commands), and unplugging it fails the loop at once."""
+@pytest.fixture
+def falcon_loop(stack):
+    """(emulator, device process): the real Falcon driver (pyusb → libusb → usbfs, emulated
+    by umockdev) in a running device loop, its emulated hand cutting grooves."""
     from burrforce.server.bench.device import falcon_groove_path
     from burrforce.server.devices.emulation.launcher import (
         EmulatedUsb,
@@ -286,55 +286,44 @@ def test_the_emulated_falcon_through_the_device_loop(stack):
             assert process.wait_state(("running", "failed"), 60.0) == "running", \
                 process.status()
             emu.control("set_hand", path=falcon_groove_path(6.0))
-            assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 20, 30.0), \
-                process.status()
-            _cutting(process)
-            t_kill = time.monotonic_ns()
-            os.kill(stack.hot.pid, signal.SIGKILL)
-            elapsed = _watchdog_time(process)
-            assert elapsed <= WATCHDOG_S
-            rows = emu.control("log", since_ns=t_kill - 200_000_000)["rows"]
-            last_reply_ns = process.stats[st.ST_T_LAST_REPLY] * 1e9
-            pushed = [r[0] for r in rows if any(r[1:4])]
-            assert pushed, "the motors were never commanded"
-            assert (max(pushed) - last_reply_ns) * 1e-9 <= WATCHDOG_S
-            assert not any(rows[-1][1:4])  # and they stay at zero
-            emu.unplug()
-            assert process.wait_state(("failed", "stopped"), 5.0) == "failed"
-            assert _wait(lambda: any("disconnected" in t for t in process.drain_events())
-                         or any("disconnected" in t for _, t in process.events), 5.0), \
-                process.events
+            yield emu, process
         finally:
-            process.stop()
+            process.stop()  # before the emulator goes (its clients abort without it)
 
 
-def test_sigterm_zeroes_the_emulated_falcons_motors(stack):
+def test_the_emulated_falcon_through_the_device_loop(stack, falcon_loop):
+    """The Falcon cuts, the watchdog zeroes its motors within 50 ms of the hot loop's death
+    (the emulator's own log of motor commands), and unplugging it fails the loop at once."""
+    emu, process = falcon_loop
+    assert _wait(lambda: stack.plane.session_state(5)["bone_version"] > 20, 30.0), \
+        process.status()
+    _cutting(process)
+    t_kill = time.monotonic_ns()
+    os.kill(stack.hot.pid, signal.SIGKILL)
+    elapsed = _watchdog_time(process)
+    assert elapsed <= WATCHDOG_S
+    rows = emu.control("log", since_ns=t_kill - 200_000_000)["rows"]
+    last_reply_ns = process.stats[st.ST_T_LAST_REPLY] * 1e9
+    pushed = [r[0] for r in rows if any(r[1:4])]
+    assert pushed, "the motors were never commanded"
+    assert (max(pushed) - last_reply_ns) * 1e-9 <= WATCHDOG_S
+    assert not any(rows[-1][1:4])  # and they stay at zero
+    emu.unplug()
+    assert process.wait_state(("failed", "stopped"), 5.0) == "failed"
+    assert _wait(lambda: any("disconnected" in t for t in process.drain_events())
+                 or any("disconnected" in t for _, t in process.events), 5.0), process.events
+
+
+def test_sigterm_zeroes_the_emulated_falcons_motors(falcon_loop):
     """SIGTERM while the Falcon is pushed: its last motor command is zero, and the last
     non-zero one came within 50 ms of the signal (the emulator's own log)."""
-    from burrforce.server.bench.device import falcon_groove_path
-    from burrforce.server.devices.emulation.launcher import (
-        EmulatedUsb,
-        emulation_unavailable_reason,
-    )
-
-    reason = emulation_unavailable_reason()
-    if reason is not None:
-        pytest.skip(f"umockdev emulation unavailable: {reason}")
-    session = _session(stack)
-    with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
-        process = DeviceProcess(_config(stack, session, device="falcon"))
-        process.start(emu.client_env())
-        try:
-            assert process.wait_state(("running", "failed"), 60.0) == "running"
-            emu.control("set_hand", path=falcon_groove_path(6.0))
-            _cutting(process)
-            t_term = time.monotonic_ns()
-            os.kill(process._process.pid, signal.SIGTERM)
-            process._process.join(10.0)
-            rows = emu.control("log", since_ns=t_term)["rows"]
-            assert rows and not any(rows[-1][1:4]), rows[-3:]
-            pushed = [r[0] for r in rows if any(r[1:4])]
-            assert not pushed or (max(pushed) - t_term) * 1e-9 <= WATCHDOG_S
-            assert process.status()["state"] == "stopped"
-        finally:
-            process.stop()
+    emu, process = falcon_loop
+    _cutting(process)
+    t_term = time.monotonic_ns()
+    os.kill(process._process.pid, signal.SIGTERM)
+    process._process.join(10.0)
+    rows = emu.control("log", since_ns=t_term)["rows"]
+    assert rows and not any(rows[-1][1:4]), rows[-3:]
+    pushed = [r[0] for r in rows if any(r[1:4])]
+    assert not pushed or (max(pushed) - t_term) * 1e-9 <= WATCHDOG_S
+    assert process.status()["state"] == "stopped"
