@@ -12,8 +12,9 @@ from hypothesis import strategies as st
 
 from burrforce.server.devices.mapping import WorkspaceMap, bone_top_centre
 from burrforce.server.devices.render import C_PASSIVITY, C_TRIPS, CouplingRenderer
-from burrforce.server.devices.sim import DeviceVelocity, SimMechanism
+from burrforce.server.devices.sim import SimMechanism
 from burrforce.server.haptics.profiles import PROFILES, DeviceProfile
+from burrforce.server.haptics.velocity import DeviceVelocity
 
 ZERO = np.zeros(3)
 # Wide limits: what the renderer computes, unclamped.

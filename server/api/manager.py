@@ -381,14 +381,9 @@ class ControlPlane:
     # -- parameters ---------------------------------------------------------------------------
     def update_parameters(self, session_id: int, params: Parameters) -> ManagedSession:
         session = self.get(session_id)
-        c = session.config
-        moves = {"frame": (params.frame, c.frame),
-                 "placement_position": (params.placement_position, c.placement_position),
-                 "placement_orientation": (params.placement_orientation,
-                                           c.placement_orientation)}
-        changed = [k for k, (new, now) in moves.items()
-                   if new is not None and (new if k == "frame" else tuple(new))
-                   != (now if k == "frame" else tuple(now))]
+        changed = [k for k in ("frame", "placement_position", "placement_orientation")
+                   if getattr(params, k) is not None
+                   and getattr(params, k) != getattr(session.config, k)]
         if changed and self.devices.attached(session_id):
             # The device loop converts its poses with the frame and placement it started
             # with: changing them under it would misplace the burr and misread k and b.

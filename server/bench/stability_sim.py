@@ -22,8 +22,9 @@ from ...proto.codec import decode_server_message, encode_pose
 from ...proto.messages import FLAG_NEW_STREAM, OK, STATUS_CLAMPED, STATUS_CUTTING, Pose, Reply
 from ...proto.tag import Tagger
 from ..devices.render import CouplingRenderer
-from ..devices.sim import DeviceVelocity, SimMechanism
+from ..devices.sim import SimMechanism
 from ..haptics.profiles import DeviceProfile
+from ..haptics.velocity import DeviceVelocity
 
 # -- the scene: the thesis's groove on the workpiece block (bone.phantoms) -------------------
 RADIUS_MM = 2.0

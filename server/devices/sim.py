@@ -26,7 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..haptics.profiles import PROFILES, DeviceProfile
-from ..haptics.velocity import new_ring, reset, velocity_step
+from ..haptics.velocity import DeviceVelocity
 from .base import DeviceInfo, DeviceState, HapticDevice, clamp_force
 
 HAND_K_N_MM = 0.3
@@ -84,38 +84,6 @@ class SimMechanism:
         """The encoder's reading: each axis quantized to the resolution."""
         r = self.resolution
         return (round(self.x[0] / r) * r, round(self.x[1] / r) * r, round(self.x[2] / r) * r)
-
-
-class DeviceVelocity:
-    """The velocity a device driver reports: FOAW on its encoder readings
-    (``haptics.velocity``: the longest window whose end-fit line stays within the encoder's
-    quantum of every reading), mm/s.
-
-    Args:
-        noise_mm: the readings' uncertainty (the encoder's resolution).
-        max_span_s: the longest window.
-    """
-
-    def __init__(self, noise_mm: float, max_span_s: float = 0.03) -> None:
-        self.ring_t, self.ring_p, self.ring_state = new_ring()
-        self.noise_mm = noise_mm
-        self.max_span_s = max_span_s
-        self.v = np.zeros(3)
-        self.t_last = -math.inf
-
-    def update(self, x_mm, t_s: float) -> np.ndarray:
-        """Push a reading taken at ``t_s`` (strictly later than the last; an equal or earlier
-        one leaves the estimate as it is) and return the estimate ((3,), the same array)."""
-        if t_s > self.t_last:
-            velocity_step(self.ring_t, self.ring_p, self.ring_state, t_s, float(x_mm[0]),
-                          float(x_mm[1]), float(x_mm[2]), self.noise_mm, self.max_span_s, self.v)
-            self.t_last = t_s
-        return self.v
-
-    def reset(self) -> None:
-        reset(self.ring_state)
-        self.v[:] = 0.0
-        self.t_last = -math.inf
 
 
 def hold(position_mm=(0.0, 0.0, 0.0)) -> HandScript:

@@ -16,7 +16,6 @@ command keeps the homing bit set so the firmware keeps its reference.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -27,8 +26,7 @@ import usb.core
 from numba import njit
 
 from ...haptics.profiles import PROFILES
-from ...haptics.velocity import new_ring, velocity_step
-from ...haptics.velocity import reset as reset_velocity
+from ...haptics.velocity import DeviceVelocity
 from ..base import (
     DeviceError,
     DeviceInfo,
@@ -123,9 +121,7 @@ class FalconDevice(HapticDevice):
         self._p_m = WORKSPACE_CENTRE_M.copy()
         self._force = np.zeros(3)
         self._enc = np.zeros(3)
-        self._ring_t, self._ring_p, self._ring_state = new_ring()
-        self._velocity = np.zeros(3)
-        self._last_t_s = -math.inf
+        self._velocity = DeviceVelocity(self.info.limits.resolution_mm, VELOCITY_MAX_SPAN_S)
         self._homed = False
         self._buttons = 0
         self.fk_failures = 0
@@ -178,9 +174,7 @@ class FalconDevice(HapticDevice):
     def _reset_state(self) -> None:
         self._rx.clear()
         self._p_m[:] = WORKSPACE_CENTRE_M
-        self._velocity[:] = 0.0
-        reset_velocity(self._ring_state)
-        self._last_t_s = -math.inf
+        self._velocity.reset()
         self._homed = False
 
     # --- I/O ------------------------------------------------------------------------
@@ -253,14 +247,9 @@ class FalconDevice(HapticDevice):
         if not _sense(self._enc, self._p_m) and self._homed:
             self.fk_failures += 1
         x_mm = (self._p_m - WORKSPACE_CENTRE_M) * _M_TO_MM
-        t_s = t_ns * 1e-9
-        if t_s > self._last_t_s:
-            velocity_step(self._ring_t, self._ring_p, self._ring_state, t_s, x_mm[0], x_mm[1],
-                          x_mm[2], self.info.limits.resolution_mm, VELOCITY_MAX_SPAN_S,
-                          self._velocity)
-            self._last_t_s = t_s
+        velocity = self._velocity.update(x_mm, t_ns * 1e-9)
         self._buttons = buttons
-        return DeviceState(position_mm=x_mm, velocity_mm_s=self._velocity.copy(),
+        return DeviceState(position_mm=x_mm, velocity_mm_s=velocity.copy(),
                            buttons=buttons, t_ns=t_ns)
 
     def home(self, timeout_s: float = 30.0,
