@@ -331,6 +331,32 @@ class BurrRest:
         return self._json("PUT", f"/sessions/{int(session_id)}/features",
                           json={**current, **fields})
 
+    # -- devices on the server's machine ------------------------------------------------------
+    def devices(self) -> list[dict]:
+        """Every supported haptic device and actuator back-end, whether it is ready, and the
+        units detected on the server's machine (docs/devices.md)."""
+        return self._json("GET", "/devices")
+
+    def attach_device(self, session_id: int, device: str, **fields: Any) -> dict:
+        """Drive ``device`` (``NAME[:key=value,...]``) from the session; ``fields``:
+        ``actuator``, ``placement_mm``, ``rotation``, ``workspace_scale``, ``rpm``,
+        ``spindle``, ``home``, ``stale_ms``. Returns the device loop's status.
+
+        Raises:
+            RestError: 409 when the session already drives a device, 422 for a bad spec or
+                a device this machine cannot open (``detail`` says why).
+        """
+        return self._json("PUT", f"/sessions/{int(session_id)}/device",
+                          json=_jsonable({"device": device, **fields}))
+
+    def device_status(self, session_id: int) -> dict:
+        """The device loop's state, counters, measured rates and recent events."""
+        return self._json("GET", f"/sessions/{int(session_id)}/device")
+
+    def detach_device(self, session_id: int) -> dict:
+        """Stop the device loop (zero force, device released); its final status."""
+        return self._json("DELETE", f"/sessions/{int(session_id)}/device")
+
     def materials(self, session_id: int) -> list[dict]:
         """The material table: ``label``, ``name``, ``us_n_mm2`` (N/mm²), ``k``,
         ``forbidden``."""

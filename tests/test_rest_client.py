@@ -389,3 +389,25 @@ def test_upload_load_bone_jobs_and_delete(api, live, tmp_path):
 def _volume(api: BurrRest, session_id: int, path: Path) -> np.ndarray:
     """The session's remaining bone (uint8 0–255) through an npy export."""
     return np.load(api.export_volume(session_id, path, format="npy"))
+
+
+def test_devices_attach_status_detach(api):
+    assert {d["name"] for d in api.devices()} >= {"sim", "falcon", "audio", "wav"}
+    s = api.create_session(bone="phantom:workpiece", voxel_mm=0.2)
+    try:
+        status = api.attach_device(s["id"], "sim:hand=groove,depth_mm=4", spindle="on")
+        assert status["state"] in ("homing", "running")
+        with pytest.raises(RestError) as busy:
+            api.attach_device(s["id"], "sim")
+        assert busy.value.status == 409
+        assert api.device_status(s["id"])["device"] == "sim:hand=groove,depth_mm=4"
+        assert api.parameters(s["id"])["device"] == "generic"  # coupled for the sim's profile
+        assert api.detach_device(s["id"])["state"] == "stopped"
+        with pytest.raises(RestError) as gone:
+            api.device_status(s["id"])
+        assert gone.value.status == 404
+        with pytest.raises(RestError) as bad:
+            api.attach_device(s["id"], "sim:hand=zigzag")
+        assert bad.value.status == 422 and "hand script" in bad.value.detail
+    finally:
+        api.delete_session(s["id"])

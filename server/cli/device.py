@@ -117,27 +117,23 @@ def _session_settings(c, profile: str | None) -> dict:
         return {}
     import httpx
 
-    headers = {"Authorization": f"Bearer {c.token}"}
+    from ...client.rest import BurrRest, RestError
+
     try:
-        with httpx.Client(base_url=c.http_url + "/v1", headers=headers, timeout=10.0) as api:
-            view = api.get(f"/sessions/{c.session}")
-            params = api.get(f"/sessions/{c.session}/parameters")
-            view.raise_for_status()
-            params.raise_for_status()
-            if params.json()["device"] is None and profile is not None:
+        with BurrRest(c.http_url, c.token, timeout_s=10.0) as rest:
+            bone = rest.session(c.session).get("bone")
+            params = rest.parameters(c.session)
+            if params["device"] is None and profile is not None:
                 # A raw session's force would be rendered as it is: it buzzes on a device.
-                params = api.patch(f"/sessions/{c.session}/parameters",
-                                   json={"device": profile})
-                params.raise_for_status()
+                params = rest.set_parameters(c.session, device=profile)
                 print(f"session {c.session}: coupled output for the {profile} profile",
                       file=sys.stderr)
-    except httpx.HTTPError as exc:
+    except (RestError, httpx.HTTPError) as exc:
         print(f"note: could not read session {c.session} over REST ({exc})", file=sys.stderr)
         return {}
-    p = params.json()
-    return {"bone": view.json().get("bone"), "frame": p["frame"],
-            "placement_position": tuple(p["placement_position"]),
-            "placement_orientation": tuple(p["placement_orientation"])}
+    return {"bone": bone, "frame": params["frame"],
+            "placement_position": tuple(params["placement_position"]),
+            "placement_orientation": tuple(params["placement_orientation"])}
 
 
 def _list(args: argparse.Namespace) -> int:
