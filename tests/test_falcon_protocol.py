@@ -116,9 +116,3 @@ def test_baud_divisors_give_the_documented_rates():
     assert rate(P.BAUD_DIVISOR_9600) == pytest.approx(9600)
     assert rate(P.BAUD_DIVISOR_FIRMWARE) == pytest.approx(142857, rel=1e-3)
     assert rate(P.BAUD_DIVISOR_NORMAL) == pytest.approx(1.5e6)
-
-
-def test_udev_rule_names_the_falcon():
-    assert 'ATTRS{idVendor}=="0403"' in P.UDEV_RULE
-    assert 'ATTRS{idProduct}=="cb48"' in P.UDEV_RULE
-    assert P.UDEV_RULE in P.UDEV_HELP

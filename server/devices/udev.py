@@ -17,8 +17,10 @@ burrforce vibration board, ``devices.actuators.board_protocol``.
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
+
+from .actuators import board_protocol
+from .falcon import protocol as falcon_protocol
 
 #: Where the rules go, and the two commands that make udev apply them (then replug).
 RULES_PATH = "/etc/udev/rules.d/70-burrforce.rules"
@@ -64,37 +66,16 @@ class UsbIdentity:
         return f"{self.vid:04x}:{'*' if self.pid is None else f'{self.pid:04x}'}"
 
 
-def _falcon_ids() -> tuple[int, int]:
-    try:
-        protocol = importlib.import_module("burrforce.server.devices.falcon.protocol")
-        return protocol.VID, protocol.PID
-    except ImportError:  # pragma: no cover - the Falcon package ships with burrforce
-        return 0x0403, 0xCB48
-
-
-def _board_identity() -> UsbIdentity | None:
-    """The vibration board's identity, if its protocol module is installed (it is optional
-    here so that discovery works while the actuator package is absent)."""
-    try:
-        board = importlib.import_module("burrforce.server.devices.actuators.board_protocol")
-    except ImportError:
-        return None
-    return UsbIdentity("usb", "burrforce vibration board", board.VID, board.PID)
-
-
 def known_identities() -> tuple[UsbIdentity, ...]:
     """Every USB identity a burrforce back-end drives."""
-    falcon_vid, falcon_pid = _falcon_ids()
     ids = [
-        UsbIdentity("falcon", "Novint Falcon", falcon_vid, falcon_pid),
+        UsbIdentity("falcon", "Novint Falcon", falcon_protocol.VID, falcon_protocol.PID),
         UsbIdentity("forcedimension", "Force Dimension device", 0x1451, None),
         UsbIdentity("openhaptics", "3D Systems Touch (USB)", 0x0301, 0x2988, node="tty"),
         UsbIdentity("haply", "Haply Inverse3", 0x2FE3, None, node="tty", candidate=True),
         UsbIdentity("haply", "Haply Inverse3", 0x16C0, None, node="tty", candidate=True),
+        UsbIdentity("usb", "burrforce vibration board", board_protocol.VID, board_protocol.PID),
     ]
-    board = _board_identity()
-    if board is not None:
-        ids.append(board)
     return tuple(ids)
 
 

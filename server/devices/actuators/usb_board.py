@@ -20,6 +20,7 @@ from collections import deque
 from typing import Any
 
 from ..base import DeviceError, DeviceNotFound
+from ..udev import backend_access_help
 from ..usb import is_timeout, libusb_backend, usb_error
 from . import board_protocol as bp
 from .base import Actuator
@@ -28,23 +29,9 @@ from .synth import Perceptual
 LABEL = "burrforce vibration board"
 
 
-def _access_help() -> str:
-    try:
-        from ..udev import UsbIdentity, access_help
-    except ImportError:  # pragma: no cover - udev ships with burrforce
-        return (f'add SUBSYSTEM=="usb", ATTR{{idVendor}}=="{bp.VID:04x}", '
-                f'ATTR{{idProduct}}=="{bp.PID:04x}", MODE="0660", TAG+="uaccess" to a udev rule')
-    return access_help(UsbIdentity("usb", LABEL, bp.VID, bp.PID))
-
-
 def map_usb_error(exc: BaseException, doing: str) -> DeviceError:
     """The DeviceError for a pyusb error raised while ``doing``."""
-    return usb_error(exc, doing, LABEL, _access_help())
-
-
-def usb_backend() -> Any:
-    """A pyusb libusb-1.0 backend (``devices.usb.libusb_backend``)."""
-    return libusb_backend(LABEL)
+    return usb_error(exc, doing, LABEL, backend_access_help("usb"))
 
 
 class UsbBoardActuator(Actuator):
@@ -57,7 +44,7 @@ class UsbBoardActuator(Actuator):
         perceptual: ``"am"`` sets the frame's AM flag above the corner, ``"clamp"`` sends the
             corner frequency.
         max_rate_hz: most frames per second (≤ 1000, the protocol's limit).
-        backend: a pyusb backend (default :func:`usb_backend`).
+        backend: a pyusb backend (default ``devices.usb.libusb_backend``).
         write_timeout_ms: how long the sender thread waits for one bulk OUT transfer.
     """
 
@@ -117,7 +104,7 @@ class UsbBoardActuator(Actuator):
     def _find(self) -> Any:
         import usb.core
 
-        backend = self._backend or usb_backend()
+        backend = self._backend or libusb_backend(LABEL)
         try:
             devices = list(usb.core.find(find_all=True, idVendor=bp.VID, idProduct=bp.PID,
                                          backend=backend))
@@ -254,11 +241,9 @@ class UsbBoardActuator(Actuator):
 
         try:
             data = bytes(self._dev.read(bp.EP_IN, bp.MAX_PACKET_SIZE, timeout=1))
-        except usb.core.USBTimeoutError:
-            return  # no status yet: the next frame's read gets the newest
         except usb.core.USBError as exc:
             if is_timeout(exc):
-                return
+                return  # no status yet: the next frame's read gets the newest
             raise map_usb_error(exc, "reading the status") from exc
         try:
             status = bp.decode_status(data)

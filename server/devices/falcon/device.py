@@ -150,8 +150,7 @@ class FalconDevice(HapticDevice):
         link = FtdiLink(dev)
         link.open()
         try:
-            self.firmware_status = ensure_firmware(link, self.firmware, log.info)
-            link.normal_mode()
+            self.firmware_status = ensure_firmware(link, self.firmware, log.info)  # → normal mode
         except BaseException:
             link.close()
             raise

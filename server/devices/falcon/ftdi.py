@@ -16,27 +16,17 @@ import usb.core
 import usb.util
 
 from ..base import DeviceError
-from ..usb import LIBUSB_NOT_FOUND, usb_error
+from ..udev import backend_access_help
+from ..usb import LIBUSB_NOT_FOUND, is_timeout, usb_error
 from . import protocol as P
 
 #: Bytes asked of one bulk-IN transfer: four full-speed packets (62 payload bytes each).
 READ_CHUNK_BYTES = 4 * P.USB_PACKET_BYTES
 
 
-def access_help() -> str:
-    """What to do when this user may not open the Falcon: the project's udev rules
-    (``devices.udev``) when available, else the Falcon's own rule."""
-    try:
-        from ..udev import backend_access_help
-        text = backend_access_help("falcon")
-    except Exception:  # any failure there must not hide the access error
-        text = ""
-    return text or P.UDEV_HELP
-
-
 def map_usb_error(exc: BaseException, doing: str) -> DeviceError:
     """The DeviceError for a pyusb error raised while ``doing`` (e.g. "reading the Falcon")."""
-    return usb_error(exc, doing, "Novint Falcon", access_help(),
+    return usb_error(exc, doing, "Novint Falcon", backend_access_help("falcon"),
                      gone_hint="check its USB cable and power",
                      busy_hint="(a Falcon driver, another burrforce) has it open")
 
@@ -162,9 +152,9 @@ class FtdiLink:
         """One bulk-IN transfer's payload (FTDI status bytes stripped); b"" on a timeout."""
         try:
             n = self.dev.read(P.EP_IN, self._raw, max(1, int(timeout_ms)))
-        except usb.core.USBTimeoutError:
-            return b""
         except usb.core.USBError as exc:
+            if is_timeout(exc):
+                return b""
             raise map_usb_error(exc, "reading from the Falcon") from exc
         if n <= P.FTDI_STATUS_BYTES:
             return b""

@@ -33,14 +33,6 @@ USB_PACKET_BYTES = 64
 FTDI_STATUS_BYTES = 2
 PACKET_BYTES = 16
 
-#: udev rule giving the ``plugdev`` group access to the Falcon (Debian/Ubuntu convention).
-UDEV_RULE = ('SUBSYSTEM=="usb", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="cb48", '
-             'MODE="0664", GROUP="plugdev"')
-UDEV_RULE_PATH = "/etc/udev/rules.d/40-novint-falcon.rules"
-UDEV_HELP = (f"add the udev rule\n    {UDEV_RULE}\nto {UDEV_RULE_PATH}, run "
-             "'sudo udevadm control --reload && sudo udevadm trigger', add yourself to the "
-             "plugdev group, then re-plug the Falcon")
-
 # --- FTDI vendor control requests (bmRequestType FTDI_REQUEST_OUT, wIndex FTDI_INDEX) -------
 
 FTDI_REQUEST_OUT = 0x40

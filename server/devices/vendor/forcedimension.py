@@ -135,12 +135,11 @@ class ForceDimensionDevice(HapticDevice):
         if dhd.enableForce(True, ident) < 0:
             raise self._error("could not enable forces")
 
-    def _close(self) -> None:
+    def _close(self) -> None:  # the force was zeroed by close() (HapticDevice.zero)
         if self._id >= 0:
             try:
-                self._dhd.setForce((0.0, 0.0, 0.0), self._id)
-            finally:
                 self._drd.close(self._id)
+            finally:
                 self._id = -1
 
     def home(self, timeout_s: float = 30.0,

@@ -32,7 +32,6 @@ Untested against hardware: the tests drive a fake of HaplyHardwareAPI's Python A
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import threading
@@ -42,6 +41,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ....proto.frames import quat_matrix
 from ...haptics.profiles import PROFILES
 from ..base import (
     DeviceAccessDenied,
@@ -84,18 +84,13 @@ def _no_uuid(wakeup: object) -> bool:
 
 
 def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
-    """(3, 3) rotation matrix of the quaternion ``q`` = (w, x, y, z) (normalized first);
-    identity for a zero quaternion."""
+    """(3, 3) rotation matrix of the quaternion ``q`` = (w, x, y, z) (the VerseGrip's order;
+    normalized first); identity for a zero or non-finite quaternion."""
     w, x, y, z = (float(v) for v in q)
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if not math.isfinite(n) or n == 0.0:
         return np.eye(3)
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return quat_matrix((x, y, z, w))
 
 
 def buttons_mask(buttons: object) -> int:
@@ -235,10 +230,8 @@ class HaplyInverse3Device(HapticDevice):
         handle, self._handle = self._handle, None
         if handle is not None:
             handle.stop()
-        device, self._device = self._device, None
-        if device is not None:
-            with contextlib.suppress(Exception):  # best effort: the port may be gone
-                device.end_effector_force([0.0, 0.0, 0.0])
+        # The force was zeroed by close() (HapticDevice.zero) before this.
+        self._device = None
         self._stream = None  # the API closes the port when the stream is destroyed
 
     # -- I/O -------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ...haptics.profiles import PROFILES
+from ...haptics.velocity import DeviceVelocity
 from ..base import (
     DeviceDisconnected,
     DeviceError,
@@ -112,7 +113,7 @@ class OpenHapticsDevice(HapticDevice):
         self._closing = False
         self._ticks = 0
         self._model: str | None = None
-        self._previous: tuple[np.ndarray, int] | None = None
+        self._estimate = DeviceVelocity(PROFILES["touch"].resolution_mm)
         self._device = None
         self._callback = None
 
@@ -201,15 +202,12 @@ class OpenHapticsDevice(HapticDevice):
             self._centre = 0.5 * (box_mm[0:3] + box_mm[3:6])
 
     def _velocity(self, hd, position: np.ndarray, now: int) -> np.ndarray:
-        """OpenHaptics' own velocity estimate (mm/s), or a finite difference of positions when
-        the wrapper does not expose ``hdGetDoublev``."""
+        """OpenHaptics' own velocity estimate (mm/s), or the project's FOAW estimate from the
+        positions when the wrapper does not expose ``hdGetDoublev``."""
         measured = self._get_doublev(hd, "HD_CURRENT_VELOCITY", getattr(hd, "hduVector3Dd", None))
         if measured is not None:
             return np.array(measured[0:3], dtype=float)
-        previous, self._previous = self._previous, (position, now)
-        if previous is None or now <= previous[1]:
-            return np.zeros(3)
-        return (position - previous[0]) / ((now - previous[1]) * 1e-9)
+        return self._estimate.update(position, now * 1e-9).copy()
 
     @staticmethod
     def _get_doublev(hd, code_name: str, ctype):
