@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 from .registry import ACTUATORS, HAPTIC
 from .udev import RELOAD_COMMANDS, RULES_PATH, UsbIdentity, known_identities, match, rule
+from .usb import find_libusb
 
 #: Where device nodes and USB sysfs entries live (tests under umockdev see its testbed here).
 DEV_ROOT = "/dev"
@@ -125,30 +126,9 @@ class UsbScan:
     devices: list[tuple[int, int, int, int, tuple[int, ...]]] = field(default_factory=list)
 
 
-def _libusb_backend():
-    """(pyusb backend, description) or (None, why not)."""
-    try:
-        import usb.backend.libusb1 as libusb1
-    except ImportError:
-        return None, "pyusb is not installed: pip install pyusb"
-    try:
-        import libusb_package
-    except ImportError:
-        pass
-    else:
-        backend = libusb_package.get_libusb1_backend()
-        if backend is not None:
-            return backend, f"libusb-package ({libusb_package.get_library_path()})"
-    backend = libusb1.get_backend()
-    if backend is not None:
-        return backend, "system libusb-1.0"
-    return None, ("no libusb-1.0 found: pip install libusb-package, or "
-                  "apt-get install libusb-1.0-0")
-
-
 def scan_usb() -> UsbScan:
     """List the USB devices libusb sees (descriptors only: nothing is opened)."""
-    backend, description = _libusb_backend()
+    backend, description = find_libusb()
     if backend is None:
         return UsbScan(error=description)
     import usb.core

@@ -16,28 +16,37 @@ _GONE_CODES = {_LIBUSB_IO, _LIBUSB_NO_DEVICE, LIBUSB_NOT_FOUND, _LIBUSB_PIPE}
 _DENIED_ERRNOS = {errno.EACCES, errno.EPERM}
 
 
-def libusb_backend(label: str) -> Any:
-    """A pyusb libusb-1.0 backend: libusb-package's bundled library, else the system's.
-
-    Raises:
-        VendorLibraryMissing: neither loads (``label`` names the device that needs it).
-    """
+def find_libusb() -> tuple[Any, str]:
+    """(pyusb libusb-1.0 backend, which library it is) — libusb-package's bundled library,
+    else the system's — or (None, why there is none and what to install)."""
     try:
         import usb.backend.libusb1 as libusb1
-    except ImportError as exc:
-        raise VendorLibraryMissing(f"the {label} needs pyusb: pip install pyusb "
-                                   "libusb-package") from exc
-    backend = None
+    except ImportError:
+        return None, "pyusb is not installed: pip install pyusb libusb-package"
     try:
         import libusb_package
-
-        backend = libusb_package.get_libusb1_backend()
     except ImportError:
         pass
-    backend = backend or libusb1.get_backend()
+    else:
+        backend = libusb_package.get_libusb1_backend()
+        if backend is not None:
+            return backend, f"libusb-package ({libusb_package.get_library_path()})"
+    backend = libusb1.get_backend()
+    if backend is not None:
+        return backend, "system libusb-1.0"
+    return None, ("no libusb-1.0 found: pip install libusb-package, or apt-get install "
+                  "libusb-1.0-0")
+
+
+def libusb_backend(label: str) -> Any:
+    """The pyusb backend :func:`find_libusb` finds.
+
+    Raises:
+        VendorLibraryMissing: none (``label`` names the device that needs it).
+    """
+    backend, description = find_libusb()
     if backend is None:
-        raise VendorLibraryMissing(f"the {label} needs libusb-1.0: pip install libusb-package "
-                                   "(or apt-get install libusb-1.0-0)")
+        raise VendorLibraryMissing(f"the {label} needs libusb: {description}")
     return backend
 
 
