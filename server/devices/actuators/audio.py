@@ -183,7 +183,3 @@ class AudioActuator(Actuator):
         """Output underflows PortAudio reported since :meth:`open`."""
         return self.stats.underruns
 
-    @property
-    def last_update_ns(self) -> int:
-        """``time.monotonic_ns()`` of the last update's arrival (0: none yet)."""
-        return self._last_arrival_ns

@@ -15,14 +15,7 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
-from ..base import DeviceError
-
 WATCHDOG_DEFAULT_MS = 50.0
-
-
-class ActuatorError(DeviceError):
-    """An actuator failed (I/O error, bad configuration). Not-found, access-denied,
-    disconnected and missing-library errors use the ``devices.base`` DeviceError family."""
 
 
 @dataclass(frozen=True)

@@ -106,10 +106,6 @@ class WavActuator(Actuator):
         self._blocks_written = 0
         self._osc_stale = False
 
-    @property
-    def frames_written(self) -> int:
-        return self._blocks_written * self.block_frames
-
     def _block_start_ns(self, index: int) -> int:
         assert self._t_first is not None
         return self._t_first + (index * self.block_frames * 1_000_000_000) // self.rate_hz

@@ -29,7 +29,6 @@ from typing import Any
 DIR_IN = 0x80
 TYPE_MASK = 0x60
 TYPE_STANDARD = 0x00
-TYPE_CLASS = 0x20
 TYPE_VENDOR = 0x40
 RECIPIENT_MASK = 0x1F
 RECIPIENT_DEVICE = 0
@@ -87,10 +86,6 @@ class Endpoint:
             raise ValueError(f"max_packet must be 1..1024 bytes, got {self.max_packet}")
         if self.transfer == "interrupt" and not 1 <= self.interval <= 255:
             raise ValueError(f"an interrupt endpoint needs interval 1..255, got {self.interval}")
-
-    @property
-    def is_in(self) -> bool:
-        return bool(self.address & DIR_IN)
 
     def descriptor(self) -> bytes:
         return struct.pack("<BBBBHB", 7, DESC_ENDPOINT, self.address,

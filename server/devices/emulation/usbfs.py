@@ -164,7 +164,6 @@ class _Urb:
     kind: int
     endpoint: int
     length: int
-    submitted_ns: int = field(default_factory=time.monotonic_ns)
 
     def finish(self, status: int, payload: bytes = b"", offset: int = 0,
                actual: int | None = None) -> None:
@@ -408,10 +407,7 @@ class UsbfsEmulator:
             client.complete(0, 0)
         elif request == IOCTL_GET_SPEED:
             client.complete(USB_SPEED_CODES[self.function.speed_mbps], 0)
-        elif request in (IOCTL_CLAIMINTERFACE, IOCTL_RELEASEINTERFACE):
-            (iface,) = struct.unpack("<I", bytes(arg.resolve(0, 4).retrieve()))
-            client.complete(*((0, 0) if iface == 0 else (-1, errno.ENOENT)))
-        elif request == IOCTL_DISCONNECT_CLAIM:
+        elif request in (IOCTL_CLAIMINTERFACE, IOCTL_RELEASEINTERFACE, IOCTL_DISCONNECT_CLAIM):
             (iface,) = struct.unpack("<I", bytes(arg.resolve(0, 4).retrieve()))
             client.complete(*((0, 0) if iface == 0 else (-1, errno.ENOENT)))
         elif request == IOCTL_SETINTERFACE:
@@ -486,25 +482,33 @@ class UsbfsEmulator:
         self._reapable.setdefault(client, deque()).append(urb)
         self._answer_held(time.monotonic_ns())
 
+    def _control(self, setup: tuple[int, int, int, int, int], data: bytes) -> bytes:
+        """One control transfer on the function: the IN reply (at most wLength bytes), b""
+        for an OUT. Raises Stall when the function refuses it."""
+        rtype, req, value, index, wlength = setup
+        if rtype & DIR_IN:
+            answer = self.function.control(rtype, req, value, index, wlength)
+            if answer is None or isinstance(answer, int):
+                raise Stall
+            return bytes(answer)[:wlength]
+        if self.function.control(rtype, req, value, index, data) is None:
+            raise Stall
+        return b""
+
     def _run_control(self, urb: _Urb) -> None:
         raw = bytes(urb.buffer.retrieve())
         rtype, req, value, index, wlength = struct.unpack("<BBHHH", raw[:SETUP_BYTES])
         wlength = min(wlength, urb.length - SETUP_BYTES)
         try:
-            if rtype & DIR_IN:
-                answer = self.function.control(rtype, req, value, index, wlength)
-                if answer is None or isinstance(answer, int):
-                    raise Stall
-                reply = bytes(answer)[:wlength]
-                urb.finish(0, reply, offset=SETUP_BYTES)
-            else:
-                answer = self.function.control(rtype, req, value, index,
-                                               raw[SETUP_BYTES:SETUP_BYTES + wlength])
-                if answer is None:
-                    raise Stall
-                urb.finish(0, actual=wlength)
+            reply = self._control((rtype, req, value, index, wlength),
+                                  raw[SETUP_BYTES:SETUP_BYTES + wlength])
         except Stall:
             urb.finish(-errno.EPIPE, actual=0)
+            return
+        if rtype & DIR_IN:
+            urb.finish(0, reply, offset=SETUP_BYTES)
+        else:
+            urb.finish(0, actual=wlength)
 
     def _poll_in(self) -> None:
         """Ask the function for data for each pending IN URB, oldest first per endpoint."""
@@ -615,25 +619,21 @@ class UsbfsEmulator:
 
     def _sync_control(self, client: Any, arg: Any) -> None:
         ctrl = arg.resolve(0, CTRL_STRUCT_BYTES)
-        rtype, req, value, index, wlength = struct.unpack("<BBHHH",
-                                                          bytes(ctrl.retrieve())[:8])
+        setup = struct.unpack("<BBHHH", bytes(ctrl.retrieve())[:8])
+        rtype, wlength = setup[0], setup[4]
         buf = ctrl.resolve(CTRL_DATA_OFFSET, wlength) if wlength else None
+        payload = bytes(buf.retrieve()) if buf is not None and not rtype & DIR_IN else b""
         try:
-            if rtype & DIR_IN:
-                answer = self.function.control(rtype, req, value, index, wlength)
-                if answer is None or isinstance(answer, int):
-                    raise Stall
-                reply = bytes(answer)[:wlength]
-                if reply:
-                    buf.update(0, reply)
-                client.complete(len(reply), 0)
-            else:
-                payload = bytes(buf.retrieve()) if buf is not None else b""
-                if self.function.control(rtype, req, value, index, payload) is None:
-                    raise Stall
-                client.complete(wlength, 0)
+            reply = self._control(setup, payload)
         except Stall:
             client.complete(-1, errno.EPIPE)
+            return
+        if rtype & DIR_IN:
+            if reply:
+                buf.update(0, reply)
+            client.complete(len(reply), 0)
+        else:
+            client.complete(wlength, 0)
 
     def _sync_bulk(self, client: Any, arg: Any) -> None:
         bulk = arg.resolve(0, BULK_STRUCT_BYTES)

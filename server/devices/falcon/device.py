@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
-import usb.backend.libusb1
 import usb.core
 from numba import njit
 
@@ -33,7 +32,6 @@ from ..base import (
     DeviceNotFound,
     DeviceState,
     HapticDevice,
-    VendorLibraryMissing,
     clamp_force,
 )
 from ..usb import libusb_backend
@@ -123,7 +121,6 @@ class FalconDevice(HapticDevice):
         self._enc = np.zeros(3)
         self._velocity = DeviceVelocity(self.info.limits.resolution_mm, VELOCITY_MAX_SPAN_S)
         self._homed = False
-        self._buttons = 0
         self.fk_failures = 0
         self.bad_packets = 0
         self.cycles = 0
@@ -136,8 +133,6 @@ class FalconDevice(HapticDevice):
         try:
             found = list(usb.core.find(find_all=True, idVendor=P.VID, idProduct=P.PID,
                                        backend=backend))
-        except usb.core.NoBackendError as exc:
-            raise VendorLibraryMissing(f"pyusb found no libusb backend: {exc}") from exc
         except usb.core.USBError as exc:
             raise map_usb_error(exc, "listing USB devices") from exc
         found.sort(key=lambda d: (d.bus or 0, d.address or 0))
@@ -182,11 +177,6 @@ class FalconDevice(HapticDevice):
     def homed(self) -> bool:
         """Whether the firmware reported all three axes homed in the last reply."""
         return self._homed
-
-    @property
-    def position_m(self) -> np.ndarray:
-        """The last good end-effector position (m, (3,), Falcon frame; a copy)."""
-        return self._p_m.copy()
 
     def _exchange(self, command: bytes) -> tuple[tuple[int, int, int], int,
                                                  tuple[bool, bool, bool]]:
@@ -247,7 +237,6 @@ class FalconDevice(HapticDevice):
             self.fk_failures += 1
         x_mm = (self._p_m - WORKSPACE_CENTRE_M) * _M_TO_MM
         velocity = self._velocity.update(x_mm, t_ns * 1e-9)
-        self._buttons = buttons
         return DeviceState(position_mm=x_mm, velocity_mm_s=velocity.copy(),
                            buttons=buttons, t_ns=t_ns)
 

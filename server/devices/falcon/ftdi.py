@@ -42,7 +42,6 @@ class FtdiLink:
         self.dev = dev
         self._claimed = False
         self._raw = array("B", bytes(READ_CHUNK_BYTES))
-        self._detached_kernel_driver = False
 
     # --- open / close ---------------------------------------------------------------
 
@@ -52,7 +51,6 @@ class FtdiLink:
         try:
             if dev.is_kernel_driver_active(P.INTERFACE):
                 dev.detach_kernel_driver(P.INTERFACE)
-                self._detached_kernel_driver = True
         except NotImplementedError:
             pass  # not every backend/OS has kernel drivers to detach
         except usb.core.USBError as exc:
