@@ -90,7 +90,6 @@ class AudioActuator(Actuator):
         self._mono = np.zeros(self.blocksize, dtype=np.float32)
         self._stream: Any = None
         self._last_arrival_ns = 0
-        self._stale = True
         self._silent_event = threading.Event()
         #: the callback's last exception (it must not raise into PortAudio)
         self.callback_error: BaseException | None = None
@@ -103,11 +102,8 @@ class AudioActuator(Actuator):
                 self.stats.underruns += 1
             now = time.monotonic_ns()
             stale = now + 2 * self._block_ns - self._last_arrival_ns > self.watchdog_ns
-            fired = stale and not self._stale and not self._osc.silent
-            self._stale = self._stale or stale
             mono = self._mono if frames == self._mono.shape[0] else np.zeros(frames, np.float32)
-            self._osc.render(mono, stale)
-            if fired:
+            if self._osc.render(mono, stale):
                 self.stats.watchdog_silences += 1
                 self.stats.watchdog_silent_ns = now + frames * 1_000_000_000 // self.rate_hz
             if self.channels > 1:
@@ -125,7 +121,6 @@ class AudioActuator(Actuator):
         # Arrival first: a callback in between then sees a fresh stream with the old target,
         # never the new target with a stale arrival (which would latch silence).
         self._last_arrival_ns = arrival_ns
-        self._stale = False
         self._osc.set_target(level, frequency_hz)
         if level > 0.0:
             self._silent_event.clear()
@@ -146,7 +141,6 @@ class AudioActuator(Actuator):
         # Load the compiled kernel here, not in the first callback (that would underrun).
         self._osc.render(self._mono, stale=True)
         self._last_arrival_ns = 0
-        self._stale = True
         self._silent_event.set()
         self.callback_error = None
         try:

@@ -149,12 +149,17 @@ class Oscillator:
         return self._level == 0.0 and (self._stale or self._target[0] == 0.0
                                        or self._target[1] == 0.0)
 
-    def render(self, out: np.ndarray, stale: bool = False) -> None:
+    def render(self, out: np.ndarray, stale: bool = False) -> bool:
         """Fill ``out`` ((n,) float32, contiguous) with the next block.
 
         ``stale``: the parameter stream stopped; ramp to zero within this block and stay zero
         until the next :meth:`set_target`.
+
+        Returns:
+            True if this block is where a sounding output starts falling silent for being
+            stale (the watchdog fired), False otherwise.
         """
+        fired = stale and not self._stale and not self.silent
         if stale:
             self._stale = True
         level, frequency_hz = self._target
@@ -171,6 +176,7 @@ class Oscillator:
             out, self.rate_hz, self._phase, self._carrier_hz, carrier_hz, self._level, level,
             self._am_phase, self.perceptual.am_hz, self._depth, depth)
         self._level, self._carrier_hz, self._depth = level, carrier_hz, depth
+        return fired
 
     def block(self, n: int, stale: bool = False) -> np.ndarray:
         """The next ``n`` samples as a new (n,) float32 array."""

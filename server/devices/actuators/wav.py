@@ -104,7 +104,6 @@ class WavActuator(Actuator):
         self._t_first: int | None = None
         self._last_t = 0
         self._blocks_written = 0
-        self._osc_stale = False
 
     def _block_start_ns(self, index: int) -> int:
         assert self._t_first is not None
@@ -127,11 +126,9 @@ class WavActuator(Actuator):
             start = self._block_start_ns(self._blocks_written)
             # Ramp in the last block that still ends within the watchdog: silent by then.
             stale = start + 2 * block_ns - self._last_t > self.watchdog_ns
-            if stale and not self._osc.silent and not self._osc_stale:
+            if self._osc.render(self._block, stale):
                 self.stats.watchdog_silences += 1
                 self.stats.watchdog_silent_ns = self._block_start_ns(self._blocks_written + 1)
-            self._osc_stale = self._osc_stale or stale
-            self._osc.render(self._block, stale)
             self._writer.write(self._block)
             self._blocks_written += 1
             self.stats.blocks += 1
@@ -154,7 +151,6 @@ class WavActuator(Actuator):
         self._render_until(t_ns)
         self._last_t = t_ns
         self._osc.set_target(level, frequency_hz)
-        self._osc_stale = False
 
     def _close(self) -> None:
         assert self._writer is not None and self._osc is not None
