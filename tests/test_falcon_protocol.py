@@ -116,3 +116,18 @@ def test_baud_divisors_give_the_documented_rates():
     assert rate(P.BAUD_DIVISOR_9600) == pytest.approx(9600)
     assert rate(P.BAUD_DIVISOR_FIRMWARE) == pytest.approx(142857, rel=1e-3)
     assert rate(P.BAUD_DIVISOR_NORMAL) == pytest.approx(1.5e6)
+
+
+def test_split_packets_resyncs_and_keeps_a_partial_tail():
+    good = P.encode_status((1, -2, 3), buttons=1, homed=(True, True, False))
+    broken = b"<" + bytes(15)  # starts like a packet, does not decode
+    buf = bytearray(b"xx" + good + broken + good + good[:5])
+    items = list(P.split_packets(buf, P.decode_status))
+    assert items[0] is None  # the garbage before the first '<'
+    decoded = [i for i in items if i is not None]
+    assert decoded == [P.decode_status(good)] * 2
+    assert None in items[2:]  # the broken packet
+    assert bytes(buf) == good[:5]  # waits for the rest
+    buf += good[5:]
+    assert list(P.split_packets(buf, P.decode_status)) == [P.decode_status(good)]
+    assert buf == bytearray()

@@ -199,27 +199,11 @@ class EmulatedFalcon(EmulatedFtdi):
             self.serial_to_host(data)
 
     def _parse_packets(self) -> None:
-        rx = self._rx
-        while True:
-            start = rx.find(bytes((fp.PACKET_START,)))
-            if start < 0:
-                self.bad_packets += bool(rx)
-                rx.clear()
-                return
-            if start:
-                del rx[:start]
+        for command in fp.split_packets(self._rx, fp.decode_command):
+            if command is None:
                 self.bad_packets += 1
-            if len(rx) < fp.PACKET_BYTES:
-                return
-            packet = bytes(rx[:fp.PACKET_BYTES])
-            try:
-                motor, leds, homing = fp.decode_command(packet)
-            except ValueError:
-                self.bad_packets += 1
-                del rx[:1]
-                continue
-            del rx[:fp.PACKET_BYTES]
-            self._io_cycle(motor, leds, homing)
+            else:
+                self._io_cycle(*command)
 
     def _io_cycle(self, motor: tuple[int, int, int], leds: int, homing: bool) -> None:
         now = self.clock()

@@ -189,17 +189,11 @@ class FalconDevice(HapticDevice):
         newest = None
         deadline = time.monotonic() + REPLY_TIMEOUT_MS / 1000.0
         while True:
-            while len(rx) >= P.PACKET_BYTES:
-                if rx[0] != P.PACKET_START:
-                    start = rx.find(b"<", 1)
-                    del rx[:start if start > 0 else len(rx)]
-                    continue
-                try:
-                    newest = P.decode_status(bytes(rx[:P.PACKET_BYTES]))
-                    del rx[:P.PACKET_BYTES]
-                except ValueError:
+            for status in P.split_packets(rx, P.decode_status):
+                if status is None:
                     self.bad_packets += 1
-                    del rx[:1]
+                else:
+                    newest = status
             if newest is not None:
                 return newest
             left_ms = (deadline - time.monotonic()) * 1000.0

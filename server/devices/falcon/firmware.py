@@ -104,15 +104,10 @@ def firmware_running(link: FtdiLink, cycles: int = PROBE_CYCLES,
     command = P.encode_command((0, 0, 0))
     for _ in range(cycles):
         link.write(command)
-        reply = link.bulk_read(P.PACKET_BYTES, reply_timeout_ms / 1000.0)
-        start = reply.find(b"<")
-        while 0 <= start <= len(reply) - P.PACKET_BYTES:
-            try:
-                P.decode_status(reply[start:start + P.PACKET_BYTES])
-                link.purge()
-                return True
-            except ValueError:
-                start = reply.find(b"<", start + 1)
+        reply = bytearray(link.bulk_read(P.PACKET_BYTES, reply_timeout_ms / 1000.0))
+        if any(status is not None for status in P.split_packets(reply, P.decode_status)):
+            link.purge()
+            return True
     return False
 
 

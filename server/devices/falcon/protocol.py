@@ -19,7 +19,10 @@ umockdev emulation) decodes commands and encodes status.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import TypeVar
+
+T = TypeVar("T")
 
 # --- USB identity -------------------------------------------------------------------------
 
@@ -211,3 +214,31 @@ def strip_ftdi_status(raw: bytes, max_packet: int = USB_PACKET_BYTES) -> bytes:
         return raw[FTDI_STATUS_BYTES:]
     return b"".join(raw[i + FTDI_STATUS_BYTES:i + max_packet]
                     for i in range(0, len(raw), max_packet))
+
+
+def split_packets(buf: bytearray, decode: Callable[[bytes], T]) -> Iterator[T | None]:
+    """Take every whole packet off the front of ``buf`` (a serial byte stream), resyncing on
+    ``'<'``: yields ``decode(packet)`` for each one that decodes and None for each run of bytes
+    skipped (garbage before a ``'<'``, or a packet ``decode`` refused). An incomplete packet
+    stays in ``buf`` for the next read. Both sides use it: the driver on status packets, the
+    emulated Falcon on commands."""
+    while True:
+        start = buf.find(b"<")
+        if start < 0:
+            if buf:
+                yield None
+            buf.clear()
+            return
+        if start:
+            del buf[:start]
+            yield None
+        if len(buf) < PACKET_BYTES:
+            return
+        try:
+            item = decode(bytes(buf[:PACKET_BYTES]))
+        except ValueError:
+            del buf[:1]
+            yield None
+            continue
+        del buf[:PACKET_BYTES]
+        yield item
