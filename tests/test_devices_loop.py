@@ -327,3 +327,35 @@ def test_sigterm_zeroes_the_emulated_falcons_motors(falcon_loop):
     pushed = [r[0] for r in rows if any(r[1:4])]
     assert not pushed or (max(pushed) - t_term) * 1e-9 <= WATCHDOG_S
     assert process.status()["state"] == "stopped"
+
+
+def test_sigterm_while_homing_unwinds_cleanly(stack):
+    """A Falcon waiting to be homed (nobody moves the grip) is stopped at once by SIGTERM,
+    through close(), and says so."""
+    from burrforce.server.devices.emulation.launcher import (
+        EmulatedUsb,
+        emulation_unavailable_reason,
+    )
+
+    reason = emulation_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"umockdev emulation unavailable: {reason}")
+    session = _session(stack)
+    with EmulatedUsb("falcon", firmware_loaded=True) as emu:
+        process = DeviceProcess(_config(stack, session, device="falcon"))
+        process.start(emu.client_env())
+        try:
+            assert process.wait_state(("homing",), 60.0) == "homing", process.status()
+            t0 = time.monotonic()
+            os.kill(process._process.pid, signal.SIGTERM)
+            process._process.join(10.0)
+            assert time.monotonic() - t0 < 5.0
+            assert process._process.exitcode == 0
+            assert process.status()["state"] == "stopped"
+            assert _wait(lambda: any("before the device was ready" in t
+                                     for t in process.drain_events())
+                         or any("before the device was ready" in t
+                                for _, t in process.events), 5.0), process.events
+            assert not any(emu.state()["motor_command"])
+        finally:
+            process.stop()

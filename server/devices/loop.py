@@ -131,8 +131,9 @@ class DeviceLoop:
         self.stats = stats
         self.say = say
         self.stop_requested = False
-        #: True once the servo loop runs (a stop request then ends it at the next cycle).
-        self.serving = False
+        #: True while the device is opened and homed: a stop request unwinds that at once
+        #: (later it ends the servo loop at the next cycle, or is moot while closing).
+        self.opening = False
         #: The server that started this process: when it dies the loop stops (Linux's
         #: PR_SET_PDEATHSIG follows the starting *thread*, and REST workers come and go).
         self.parent_pid = os.getppid()
@@ -196,7 +197,6 @@ class DeviceLoop:
         self.waited = 0.0  # s this cycle spent waiting for the reply
         gc.collect()
         gc.freeze()
-        self.serving = True
         while not self.stop_requested:
             if os.getppid() != self.parent_pid:
                 self.say("the server process is gone: stopping")
@@ -392,7 +392,7 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
 
     def stop(signum, frame) -> None:
         loop.stop_requested = True
-        if not loop.serving:  # opening or homing: unwind now, through close()
+        if loop.opening:  # opening or homing: unwind now, through close()
             raise StopRequested
 
     signal.signal(signal.SIGTERM, stop)
@@ -401,7 +401,11 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
     try:
         if config.realtime and _try_realtime():
             say("servo loop: SCHED_FIFO")
-        loop.open()
+        loop.opening = True
+        try:
+            loop.open()
+        finally:
+            loop.opening = False
         loop.run()
     except StopRequested:
         say("stopped before the device was ready")
