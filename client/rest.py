@@ -455,6 +455,19 @@ class BurrRest:
         except ValueError as exc:
             raise RestError(0, str(exc), method="GET", url=str(response.request.url)) from None
 
+    def mesh_chunks(self, session_id: int, **query: Any) -> bytes:
+        """One page of the carved bone's chunk meshes (proto/MESH.md; decode it with
+        ``burrforce.proto.mesh_chunks.decode``, or keep a copy with
+        ``burrforce.client.mesh.sync_rest``). ``query``: since, chunk_bricks, frame,
+        winding, cursor, max_bytes.
+
+        Raises:
+            RestError: 409 when the session is not ready or has deltas off, 422 for a bad
+                parameter.
+        """
+        return self._send("GET", f"{API_PREFIX}/sessions/{int(session_id)}/mesh",
+                          params=query).content
+
     # -- bones ----------------------------------------------------------------------------------
     def phantoms(self) -> list[dict]:
         """Built-in bones: ``source`` (``phantom:NAME``), ``description``,

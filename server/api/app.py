@@ -22,7 +22,7 @@ _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` 
 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
-    from . import routes_calibration, routes_data, routes_devices, routes_sessions
+    from . import routes_calibration, routes_data, routes_devices, routes_mesh, routes_sessions
 
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
@@ -38,6 +38,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
     )
     app.state.plane = plane
     app.state.stats = stats
+    app.state.token = token
     if plane.config.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(plane.config.cors_origins),
                            allow_methods=["*"], allow_headers=["Authorization",
@@ -90,4 +91,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
                        dependencies=[Depends(authorize)])
     app.include_router(routes_devices.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
+    app.include_router(routes_mesh.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    app.include_router(routes_mesh.ws_router, prefix=API_PREFIX)
     return app

@@ -52,7 +52,7 @@ class ServerStack:
             app = create_app(self.plane, self.token, self.stats)
             self.server = uvicorn.Server(uvicorn.Config(
                 app, host=self.config.host, port=self.config.http_port, log_level="warning",
-                access_log=False))
+                access_log=False, timeout_graceful_shutdown=5))
         except BaseException:
             self.stop()
             raise

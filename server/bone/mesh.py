@@ -292,7 +292,7 @@ def _to_world(grid: BoneGrid, verts: np.ndarray, faces: np.ndarray, normals: np.
     # Vertex normals from the faces: on partial-volume data they follow the surface better
     # than marching cubes' own gradient normals (a 4 mm sphere in 0.25 mm voxels: at worst
     # 10° off the radius against 31°), and they agree with the winding by construction.
-    n = _vertex_normals(world, faces)
+    n = vertex_normals(world, faces)
     bad = ~(np.linalg.norm(n, axis=1) > 0.0)
     if bad.any():  # a vertex of degenerate faces only: the field's gradient (index units → mm)
         g = (normals[bad].astype(np.float64) / scale) @ rot.T
@@ -311,7 +311,7 @@ def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return cross.astype(np.float32)
 
 
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n, 3) float64 unit area-weighted vertex normals by winding (zero for a vertex of no
     area)."""
     v = vertices.astype(np.float64)

@@ -149,6 +149,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     from ..bench import device as bench_device
     from ..bench import latency as bench_latency
     from ..bench import load as bench_load
+    from ..bench import mesh as bench_mesh
     from ..bench import model as bench_model
     from ..bench import stability as bench_stability
 
@@ -158,6 +159,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     bench_latency.add_parser(bench_sub)
     bench_stability.add_parser(bench_sub)
     bench_device.add_parser(bench_sub)
+    bench_mesh.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:

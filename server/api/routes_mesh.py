@@ -1,0 +1,217 @@
+"""The carved bone as mesh chunks (``proto/MESH.md``): a REST page and a WebSocket that pushes
+every change."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+from dataclasses import dataclass
+from typing import Literal
+
+from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from ...proto.mesh_chunks import MEDIA_TYPE, encode
+from .manager import ApiError, ControlPlane, ManagedSession
+from .mesh_pages import (
+    MAX_BYTES_DEFAULT,
+    MAX_BYTES_MAX,
+    MAX_BYTES_MIN,
+    MeshRequest,
+    mesh_page,
+)
+from .routes_sessions import SessionPath
+
+router = APIRouter(tags=["exports"])
+#: Authenticates itself: a WebSocket client may not be able to set a header.
+ws_router = APIRouter()
+
+Frame = Literal["session", "server"]
+Winding = Literal["ccw", "cw"]
+ChunkBricks = Query(2, ge=1, le=8, description="chunk edge in 8-voxel bricks")
+FrameQuery = Query("session", description="session: the session's engine frame and unit; "
+                                          "server: the server frame, mm")
+WindingQuery = Query("ccw", description="ccw: the right-handed cross product of a triangle's "
+                                        "edges points out of the bone; cw: into it")
+
+
+def _plane(request: Request | WebSocket) -> ControlPlane:
+    return request.app.state.plane
+
+
+def _request(session: ManagedSession, chunk_bricks: int, frame: str,
+             winding: str) -> MeshRequest:
+    c = session.config
+    return MeshRequest(session.id, chunk_bricks, frame == "session", winding == "cw",
+                       c.frame, tuple(c.placement_position), tuple(c.placement_orientation))
+
+
+def _meshable(plane: ControlPlane, session_id: int) -> ManagedSession:
+    session = plane.ready(session_id)
+    if not session.features.deltas:
+        raise ApiError(409, "the session has deltas off (features.deltas): no mesh updates")
+    return session
+
+
+@router.get("/sessions/{session_id}/mesh", response_class=Response,
+            responses={200: {"content": {MEDIA_TYPE: {}}}})
+def mesh(request: Request, session_id: int = SessionPath,
+         since: int | None = Query(None, ge=0, description="the bone version your chunks "
+                                                           "are at; omitted: every chunk"),
+         chunk_bricks: int = ChunkBricks, frame: Frame = FrameQuery,
+         winding: Winding = WindingQuery,
+         cursor: int = Query(0, ge=0, le=(1 << 32) - 1,
+                             description="the previous page's next_cursor"),
+         max_bytes: int = Query(MAX_BYTES_DEFAULT, ge=MAX_BYTES_MIN, le=MAX_BYTES_MAX,
+                                description="a page's size budget, bytes")) -> Response:
+    """The carved bone's surface as chunk meshes changed since bone version ``since`` (one
+    page: follow ``next_cursor`` while the MORE flag is set). Binary, little-endian: the
+    format is in proto/MESH.md. The WebSocket ``/v1/sessions/{id}/mesh/ws`` (same query,
+    plus ``interval_ms``; the token also as ``?token=``) pushes the same messages as the bone
+    changes."""
+    session = _meshable(_plane(request), session_id)
+    req = _request(session, chunk_bricks, frame, winding)
+    reader = session.reader
+    assert reader is not None
+    try:
+        page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes))
+    except TimeoutError as exc:
+        raise ApiError(503, str(exc)) from None
+    return Response(encode(page), media_type=MEDIA_TYPE)
+
+
+def _reason(text: str) -> str:
+    """A close reason fits in 123 bytes of UTF-8."""
+    return text.encode()[:120].decode(errors="ignore")
+
+
+def _authorized(ws: WebSocket, token: str | None) -> bool:
+    expected = ws.app.state.token.encode()
+    header = ws.headers.get("authorization", "")
+    given = header[7:] if header[:7].lower() == "bearer " else (token or "")
+    return hmac.compare_digest(given.encode(), expected)
+
+
+@dataclass(frozen=True)
+class WsQuery:
+    """The WebSocket's query, checked by hand: FastAPI would refuse a bad one with a bare
+    HTTP 403 before the handshake, telling the client nothing."""
+
+    since: int | None
+    chunk_bricks: int
+    frame: str
+    winding: str
+    interval_ms: int
+    token: str | None
+
+    @classmethod
+    def parse(cls, q) -> WsQuery:
+        def integer(name: str, default: int | None, lo: int, hi: int) -> int | None:
+            text = q.get(name)
+            if text is None:
+                return default
+            try:
+                value = int(text)
+            except ValueError:
+                raise ValueError(f"{name} must be an integer, got {text!r}") from None
+            if not lo <= value <= hi:
+                raise ValueError(f"{name} must be in {lo}..{hi}, got {value}")
+            return value
+
+        def choice(name: str, default: str, options: tuple[str, ...]) -> str:
+            value = q.get(name, default)
+            if value not in options:
+                raise ValueError(f"{name} must be one of {', '.join(options)}, got {value!r}")
+            return value
+
+        return cls(integer("since", None, 0, (1 << 63) - 1), integer("chunk_bricks", 2, 1, 8),
+                   choice("frame", "session", ("session", "server")),
+                   choice("winding", "ccw", ("ccw", "cw")),
+                   integer("interval_ms", 33, 10, 1000), q.get("token"))
+
+
+@ws_router.websocket("/sessions/{session_id}/mesh/ws")
+async def mesh_ws(ws: WebSocket, session_id: str) -> None:
+    """Pushes mesh-chunk messages (proto/MESH.md): everything changed since ``since`` at
+    once, then each change, at most every ``interval_ms``. Query: since, chunk_bricks, frame,
+    winding, interval_ms, token (or the Authorization header)."""
+    # Accepted first: a close before the handshake reaches the client as a bare HTTP 403,
+    # without the code and reason that say what was wrong.
+    await ws.accept()
+    try:
+        query = WsQuery.parse(ws.query_params)
+    except ValueError as exc:
+        await ws.close(4422, _reason(str(exc)))
+        return
+    if not _authorized(ws, query.token):
+        await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
+                             "or ?token=TOKEN)")
+        return
+    if not session_id.isdigit() or int(session_id) >= 1 << 32:
+        await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
+                                     f"{session_id!r}"))
+        return
+    plane = _plane(ws)
+    try:
+        session = _meshable(plane, int(session_id))
+    except ApiError as exc:
+        await ws.close(4000 + exc.status, _reason(exc.detail))
+        return
+    since, chunk_bricks, frame, winding = (query.since, query.chunk_bricks, query.frame,
+                                           query.winding)
+    interval_ms = query.interval_ms
+    gone = asyncio.Event()
+
+    async def watch() -> None:
+        # The client sends nothing; a receive returns only when it leaves (or the server
+        # shuts down, which uvicorn reports the same way).
+        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
+            while (await ws.receive())["type"] != "websocket.disconnect":
+                pass
+        gone.set()
+
+    watcher = asyncio.create_task(watch())
+    req = _request(session, chunk_bricks, frame, winding)
+    reader = session.reader
+    sent_for: int | None = None  # the bone version the client was last brought up to
+    loop = asyncio.get_running_loop()
+    try:
+        while not gone.is_set():
+            started = loop.time()
+            current = plane.sessions.get(session.id)
+            if current is None or current.state != "ready":
+                await ws.close(1001, f"session {session.id} is gone")
+                return
+            fresh = _request(current, chunk_bricks, frame, winding)
+            if current.reader is not reader or fresh != req:
+                # A new bone, or a new frame or placement (every coordinate moves): start
+                # over with every chunk.
+                reader, req, since, sent_for = current.reader, fresh, None, None
+            version = await run_in_threadpool(reader.read_published, lambda g: int(g.version))
+            if version != sent_for:
+                low, cursor = None, 0
+                while True:
+                    page = await run_in_threadpool(
+                        reader.read_published,
+                        lambda g, r=req, n=since, c=cursor: mesh_page(g, r, n, c,
+                                                                      MAX_BYTES_DEFAULT))
+                    await ws.send_bytes(encode(page))
+                    low = page.bone_version if low is None else min(low, page.bone_version)
+                    if not page.more:
+                        break
+                    cursor = page.next_cursor
+                since = sent_for = low
+            # At most one update per interval, counted from the last one's start: meshing
+            # and sending take part of it.
+            rest = interval_ms / 1000.0 - (loop.time() - started)
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(gone.wait(), max(rest, 0.001))
+    except (WebSocketDisconnect, RuntimeError):
+        return  # the client left mid-send
+    except TimeoutError:  # the loop held a carving tick open: tell the client, let it retry
+        with contextlib.suppress(RuntimeError):
+            await ws.close(1013, "the bone was busy; reconnect")
+    finally:
+        watcher.cancel()

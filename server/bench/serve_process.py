@@ -1,0 +1,76 @@
+"""``burrforce serve`` as a user runs it, in a subprocess on free loopback ports: for
+benchmarks and end-to-end tests that must measure or exercise the real command."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ...client import connection
+
+READY_LINE = "Ctrl-C stops"
+
+
+@dataclass
+class ServeProcess:
+    """A running ``burrforce serve``.
+
+    Attributes:
+        proc: the process (stdout and stderr merged into ``proc.stdout``, text).
+        connection: what it wrote to its connection file.
+        connection_file: that file.
+        banner: everything it printed until it was ready.
+    """
+
+    proc: subprocess.Popen
+    connection: connection.Connection
+    connection_file: Path
+    banner: str
+
+    def stop(self, timeout_s: float = 30.0) -> tuple[int, str]:
+        """SIGTERM, then wait; returns the exit code and what it printed after the banner
+        (killed if it does not stop in time)."""
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, _ = self.proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        return self.proc.returncode, out
+
+
+def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0) -> ServeProcess:
+    """Start ``burrforce serve --udp-port 0 --http-port 0 --data-dir FOLDER/data
+    --connection-file FOLDER/connection.json ARGS…`` and wait until it is ready (a cold numba
+    cache compiles the kernels first). ``BURRFORCE_TOKEN`` is not passed on.
+
+    Raises:
+        RuntimeError: it exited or did not get ready in ``timeout_s``; the message holds what
+            it printed.
+    """
+    conn = folder / "connection.json"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("BURRFORCE_TOKEN", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",
+         "--http-port", "0", "--data-dir", str(folder / "data"), "--connection-file",
+         str(conn), *args],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        lines.append(line)
+        if READY_LINE in line or not line:
+            break
+    banner = "".join(lines)
+    if READY_LINE not in banner:
+        proc.kill()
+        proc.wait()
+        raise RuntimeError(f"burrforce serve did not start:\n{banner}")
+    return ServeProcess(proc, connection.read(conn), conn, banner)
