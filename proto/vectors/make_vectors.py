@@ -70,6 +70,14 @@ CASES: tuple[Case, ...] = (
          Pose(session=4_294_967_295, seq=4_294_967_295, t_client_us=5_000_000_000_123,
               position=(-1000.5, -0.125, -250.0), orientation=(-H, 0.0, 0.0, H),
               rpm=-12345.5, spindle_on=True, velocity=(-3.25, 8.0, -0.5), flags=1), True),
+    Case("pose_largest",
+         "POSE, tagged, as long as a POSE gets (148 bytes): session, seq and flags 4294967295 "
+         "(uint32 forms; receivers ignore the reserved flag bits), t_client_us 2^63 - 1 "
+         "(uint64 form), a velocity.",
+         Pose(session=4_294_967_295, seq=4_294_967_295, t_client_us=(1 << 63) - 1,
+              position=(-0.5, 1e9, 3.0e-5), orientation=(0.5, -0.5, 0.5, -0.5),
+              rpm=1e7, spindle_on=True, velocity=(-1e9, 0.1, 2.0), flags=4_294_967_295),
+         True),
     Case("reply_tagged",
          "REPLY, tagged: error OK and a nonzero value in every other field; status "
          "CUTTING|CONTACT|CLAMPED|SHAFT_CONTACT (43); timestamps above 2^32.",
@@ -82,6 +90,19 @@ CASES: tuple[Case, ...] = (
                proxy_position=(12.25, -0.375, 29.5), proxy_velocity=(-1.5, 2.0, 0.5),
                coupling_stiffness=2.5, coupling_damping=0.0078125, removed_mm3=0.046875,
                bone_version=123_456, feed_velocity=(4.0, -2.5, -1.0)), True),
+    Case("reply_largest",
+         "REPLY, tagged, as long as a v1 server's REPLY gets (321 bytes): session and seq "
+         "4294967295, every timestamp and bone_version above 2^32 (uint64 forms), every status "
+         "bit v1 defines (127). The field kinds allow 6 bytes more (a uint16 error, a uint32 "
+         "status): 327.",
+         Reply(session=4_294_967_295, seq=4_294_967_295, t_client_us=(1 << 63) - 1,
+               t_recv_us=(1 << 63) - 2, t_send_us=(1 << 63) - 1, error=OK, status=127,
+               force=(-1.25, 0.5, -2.75), resistive=(-0.75, 0.125, 1.5),
+               torque=(0.0625, -0.03125, -0.25), power_w=1e-3, vibration_amplitude=2.5,
+               vibration_frequency_hz=3000.0, vibration_axis=(-H, 0.0, -H),
+               proxy_position=(-1e6, 2e-6, 0.5), proxy_velocity=(1.5, -2.0, -0.5),
+               coupling_stiffness=1e3, coupling_damping=-0.0, removed_mm3=1e-9,
+               bone_version=(1 << 40) + 1, feed_velocity=(-4.0, 2.5, 1.0)), True),
     Case("reply_bad_value",
          "REPLY, untagged: error BAD_VALUE (7) as SPEC.md 3.2 defines an error reply: status 0, "
          "every vector and float field zero (0.0); timestamps and bone_version as usual.",
