@@ -146,3 +146,15 @@ def test_bench_accuracy_rejects_bad_options(argv, capsys):
         main(["bench", "accuracy", *argv])
     assert exc.value.code == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_serve_demo_starts_over_the_loaded_bone():
+    from burrforce.server.bone import phantom
+    from burrforce.server.cli.serve import demo_start_mm
+
+    grid = phantom("workpiece", 0.5).grid  # the block: x 0–26, y −8–8 mm
+    info = {"shape": list(grid.shape), "spacing_mm": grid.spacing_mm.tolist(),
+            "origin_mm": grid.origin_mm.tolist(), "direction": grid.direction.tolist()}
+    x, y = demo_start_mm(info)
+    assert 0.0 < x and x + 10.0 < 26.0 and abs(y) < 1.0
+    assert demo_start_mm(None) == (-5.0, 0.0)

@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 
 import httpx
 import numpy as np
 import pytest
 
-from burrforce.client import connection
+from burrforce.server.bench.serve_process import spawn_serve
 from burrforce.server.bone import LoadOptions, load_bone
 
 
@@ -32,23 +30,11 @@ def test_serve_cut_change_us_over_rest_and_export(tmp_path):
     conn = tmp_path / "connection.json"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("BURRFORCE_TOKEN", None)
-    serve = subprocess.Popen(
-        [sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",
-         "--http-port", "0", "--bone", "phantom:workpiece", "--data-dir",
-         str(tmp_path / "data"), "--connection-file", str(conn)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    serve = spawn_serve(tmp_path, "--bone", "phantom:workpiece")
     try:
-        lines = []
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline:
-            text = serve.stdout.readline()
-            lines.append(text)
-            if "Ctrl-C stops" in text or not text:
-                break
-        out = "".join(lines)
-        assert "Ctrl-C stops" in out, out
+        out = serve.banner
         assert conn.exists() and oct(conn.stat().st_mode & 0o777) == "0o600"
-        c = connection.read(conn)
+        c = serve.connection
         token = (tmp_path / "data" / "token").read_text().strip()
         assert c.token == token and f"token {token}" in out  # shown once, at the first start
         result = _demo(env, conn, tmp_path, -4.0, plot=True)
@@ -79,12 +65,7 @@ def test_serve_cut_change_us_over_rest_and_export(tmp_path):
         assert at(6.0, -4.0, -0.25) == 0 and at(6.0, 4.0, -0.25) == 0
         assert at(6.0, 0.0, -0.25) == 255
     finally:
-        serve.send_signal(signal.SIGTERM)
-        try:
-            out, _ = serve.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            serve.kill()
-            raise
-    assert serve.returncode == 0, out
+        code, out = serve.stop()
+    assert code == 0, out
     assert "stopped" in out
     assert not conn.exists()

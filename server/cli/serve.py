@@ -198,7 +198,7 @@ def main(args: argparse.Namespace) -> int:
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device)
             if args.demo:
-                _run_demo(say, context["path"], done)
+                _run_demo(say, context["path"], done, session.bone_info)
             _report(stack.stats, session.id, done, say, plane.devices)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
@@ -257,10 +257,28 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     say("Ctrl-C stops the server.")
 
 
-def _run_demo(say, conn_path: Path, done: threading.Event) -> None:
+def demo_start_mm(bone_info: dict | None, length_mm: float = 10.0) -> tuple[float, float]:
+    """Where the demo's groove starts (x, y, server frame, mm): centred on the bone's
+    footprint, so it finds bone whichever phantom or file is loaded."""
+    if not bone_info:
+        return -5.0, 0.0
+    import numpy as np
+
+    shape = np.asarray(bone_info["shape"], dtype=np.float64)
+    spacing = np.asarray(bone_info["spacing_mm"], dtype=np.float64)
+    rot = np.asarray(bone_info["direction"], dtype=np.float64).reshape(3, 3)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    world = np.asarray(bone_info["origin_mm"]) + (corners * (shape - 1) * spacing) @ rot.T
+    centre = (world.min(axis=0) + world.max(axis=0)) / 2
+    return round(float(centre[0]) - length_mm / 2, 2), round(float(centre[1]), 2)
+
+
+def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None) -> None:
     say("--demo: running `burrforce client demo` against this server...")
     env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
-    proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo"],
+    x_mm, y_mm = demo_start_mm(bone_info)
+    proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo",
+                             "--x-mm", str(x_mm), "--y-mm", str(y_mm)],
                             env=env, stdin=subprocess.DEVNULL)
     while proc.poll() is None:
         if done.wait(0.1):
