@@ -372,3 +372,10 @@ def _rest_chunks(api, session):
     m = ChunkedMesh()
     sync_rest(api, session, m)
     return list(m.chunks.values())
+
+
+def test_placement_beyond_a_poses_reach_is_refused(live):
+    _, api, s = live
+    with pytest.raises(RestError) as err:
+        api.set_parameters(s["id"], placement_position=[1e10, 0.0, 0.0])
+    assert err.value.status == 422 and "placement_position" in str(err.value)

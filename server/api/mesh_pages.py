@@ -79,7 +79,11 @@ class ChunkTransform:
         pos = ((points * self.spacing - self.offset) @ self.a) / self.scale
         nrm = normals @ self.a
         tri = triangles[:, ::-1] if self.reverse else triangles
-        return Chunk(index, pos.astype(np.float32), nrm.astype(np.float32),
+        pos32 = pos.astype(np.float32)
+        if not np.isfinite(pos32).all():
+            raise ValueError("the session's placement puts the bone beyond float32 range in "
+                             "its frame: move it nearer the engine's origin")
+        return Chunk(index, pos32, nrm.astype(np.float32),
                      materials.astype(np.uint8), np.ascontiguousarray(tri, dtype=np.uint32))
 
 

@@ -16,6 +16,9 @@ from ..haptics.profiles import PROFILE_NAMES
 FrameName = Literal[tuple(FRAMES)]  # type: ignore[valid-type]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(description="x, y, z")]
+#: A coordinate a POSE can reach (SPEC 3.1: positions within ±1e9 engine units).
+Coord = Annotated[float, Field(allow_inf_nan=False, ge=-1e9, le=1e9)]
+Point = Annotated[tuple[Coord, Coord, Coord], Field(description="x, y, z")]
 Quat = Annotated[tuple[Finite, Finite, Finite, Finite], Field(description="x, y, z, w")]
 SessionId = Annotated[int, Field(ge=0, le=(1 << 32) - 1)]
 DeviceName = Literal[(*PROFILE_NAMES, "none")]  # type: ignore[valid-type]
@@ -98,8 +101,9 @@ class Parameters(Strict):
     frame: FrameName | None = Field(None, description="the engine's frame and units")
     tool_axis: Vec3 | None = Field(None, description=(
         "tool axis (burr → handle) in the tool's local frame, engine axes"))
-    placement_position: Vec3 | None = Field(None, description=(
-        "where the bone's world origin is in the engine's world, engine units"))
+    placement_position: Point | None = Field(None, description=(
+        "where the bone's world origin is in the engine's world, engine units (within ±1e9, "
+        "the range of a POSE's position)"))
     placement_orientation: Quat | None = None
     device: DeviceName | None = Field(None, description=(
         "the haptic device the force is for: its force, stiffness and damping limits "

@@ -79,6 +79,8 @@ def mesh(request: Request, session_id: int = SessionPath,
         page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes))
     except TimeoutError as exc:
         raise ApiError(503, str(exc)) from None
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
     return Response(encode(page), media_type=MEDIA_TYPE)
 
 
@@ -210,6 +212,9 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
                 await asyncio.wait_for(gone.wait(), max(rest, 0.001))
     except (WebSocketDisconnect, RuntimeError):
         return  # the client left mid-send
+    except ValueError as exc:  # a session setting the mesh cannot be made in
+        with contextlib.suppress(RuntimeError):
+            await ws.close(4422, _reason(str(exc)))
     except TimeoutError:  # the loop held a carving tick open: tell the client, let it retry
         with contextlib.suppress(RuntimeError):
             await ws.close(1013, "the bone was busy; reconnect")
