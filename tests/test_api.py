@@ -202,7 +202,12 @@ def test_doubling_us_doubles_the_force(stack, api):
 @pytest.mark.parametrize(("body", "words"), [
     ({"us_n_mm2": -1}, "greater than or equal"),
     ({"us_n_mm2": "NaN"}, "finite"),
-    ({"radius_mm": 0.2, "shaft_radius_mm": 0.1}, "coarser than the burr"),
+    ({"radius_mm": 100}, "less than or equal to 5"),
+    ({"radius_mm": 0.1}, "greater than or equal to 0.25"),
+    ({"shaft_length_mm": 1000}, "less than or equal to 200"),
+    ({"tool_axis": [1.7e308, 1.7e308, 1.7e308]}, "finite"),
+    ({"placement_orientation": [1.7e308, 1.7e308, 1.7e308, 1.7e308]}, "finite"),
+    ({"placement_position": [1e308, 0, 0]}, "less than or equal to 1000000000"),
     ({"radius_mm": 0.5}, "shaft radius 1.0 mm must be smaller"),
     ({"shaft_radius_mm": 3.0}, "shaft radius"),
     ({"frame": "blender"}, "si_mm"),

@@ -16,6 +16,11 @@ from ..haptics.profiles import PROFILE_NAMES
 FrameName = Literal[tuple(FRAMES)]  # type: ignore[valid-type]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(description="x, y, z")]
+#: Burr radii of surgical burrs (0.5–10 mm in diameter), mm.
+BURR_RADIUS_MIN_MM = 0.25
+BURR_RADIUS_MAX_MM = 5.0
+#: The longest shaft a handpiece reaches with, mm (burr centre to the handpiece's nose).
+SHAFT_LENGTH_MAX_MM = 200.0
 #: A coordinate a POSE can reach (SPEC 3.1: positions within ±1e9 engine units).
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-1e9, le=1e9)]
 Point = Annotated[tuple[Coord, Coord, Coord], Field(description="x, y, z")]
@@ -91,12 +96,18 @@ class Parameters(Strict):
     g: Finite | None = Field(None, ge=0.0, le=1e3, description="vibration gain on |F_r|")
     harmonic: Finite | None = Field(None, gt=0.0, le=1e3, description=(
         "vibration frequency multiple of the rotation rate (1: grinding burr; flutes)"))
-    radius_mm: Finite | None = Field(None, gt=0.001, le=100.0, description="burr radius R, mm")
+    radius_mm: Finite | None = Field(None, ge=BURR_RADIUS_MIN_MM, le=BURR_RADIUS_MAX_MM,
+                                     description=(
+        f"burr radius R, mm: {BURR_RADIUS_MIN_MM}–{BURR_RADIUS_MAX_MM}, the surgical burrs' "
+        "0.5–10 mm diameters (a larger sphere would sweep away whole bones in one tick)"))
     spin: Literal["forward", "reverse"] | None = None
     min_cutting_rpm: Finite | None = Field(None, ge=1.0, le=1e7, description=(
         "below this spindle speed the burr does not cut, rpm"))
-    shaft_radius_mm: Finite | None = Field(None, ge=0.0, le=50.0)
-    shaft_length_mm: Finite | None = Field(None, ge=0.0, le=500.0)
+    shaft_radius_mm: Finite | None = Field(None, ge=0.0, le=BURR_RADIUS_MAX_MM, description=(
+        "shaft radius, mm; thinner than the burr"))
+    shaft_length_mm: Finite | None = Field(None, ge=0.0, le=SHAFT_LENGTH_MAX_MM, description=(
+        f"shaft length from the burr centre, mm (0: no shaft); a handpiece's reach is at "
+        f"most {SHAFT_LENGTH_MAX_MM:g} mm"))
     shaft_stiffness_n_mm3: Finite | None = Field(None, ge=0.0, le=1e6)
     frame: FrameName | None = Field(None, description="the engine's frame and units")
     tool_axis: Vec3 | None = Field(None, description=(
@@ -117,13 +128,20 @@ class Parameters(Strict):
     def _nonzero(cls, v):
         if v is not None and math.hypot(*v) < 1e-6:
             raise ValueError("tool_axis must not be zero")
+        if v is not None and not math.isfinite(math.hypot(*v)):
+            raise ValueError("tool_axis must be a direction whose length is finite (it is "
+                             "normalized): scale it down")
         return v
 
     @field_validator("placement_orientation")
     @classmethod
     def _unit(cls, v):
-        if v is not None and math.sqrt(sum(x * x for x in v)) < 1e-6:
+        norm = None if v is None else math.hypot(*v)
+        if norm is not None and norm < 1e-6:
             raise ValueError("placement_orientation must not be a zero quaternion")
+        if norm is not None and not math.isfinite(norm):
+            raise ValueError("placement_orientation must have a finite norm (it is "
+                             "normalized): scale it down")
         return v
 
 
