@@ -326,23 +326,13 @@ emit(error=error)
 
 @needs_emulation
 def test_usb_board_unplug_is_reported_as_disconnected():
-    import json
-    import subprocess
-    import sys
+    from test_devices_emulation import interactive_client
 
-    with EmulatedUsb("board") as emu:
-        proc = subprocess.Popen([sys.executable, "-c", DRIVER_PRELUDE + UNPLUG_DRIVER],
-                                env=emu.client_env(), stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, text=True)
-        try:
-            assert json.loads(proc.stdout.readline())["ready"]
-            emu.unplug()
-            proc.stdin.write("\n")
-            proc.stdin.flush()
-            result = json.loads(proc.stdout.readline())
-            assert proc.wait(30) == 0
-        finally:
-            proc.kill()
+    with EmulatedUsb("board") as emu, \
+            interactive_client(emu, DRIVER_PRELUDE + UNPLUG_DRIVER) as (go, read):
+        emu.unplug()
+        go()
+        result = read()
     assert result["error"] is not None
     name, message = result["error"]
     assert name == "DeviceDisconnected", message

@@ -6,6 +6,7 @@ libumockdev-preload.so.0 is missing (CI installs umockdev gir1.2-umockdev-1.0)."
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
@@ -304,6 +305,29 @@ def run_client(emu: EmulatedUsb, body: str, *args: str, timeout_s: float = 120.0
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@contextlib.contextmanager
+def interactive_client(emu: EmulatedUsb, script: str):
+    """A client ``script`` under the emulator's preload that prints ``{"ready": ...}``, then
+    waits on stdin before each step and reports it as a JSON line: yields ``(go, read)``;
+    ``go()`` lets it take a step, ``read()`` returns its next report. Killed on the way out."""
+    proc = subprocess.Popen([sys.executable, "-c", script], env=emu.client_env(),
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def go() -> None:
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+
+    def read() -> dict:
+        return json.loads(proc.stdout.readline())
+
+    try:
+        assert read()["ready"]
+        yield go, read
+        assert proc.wait(30) == 0
+    finally:
+        proc.kill()
+
+
 LOOPBACK_CLIENT = """
 dev = find(0x1209, 0x0002)
 dev.set_configuration()
@@ -364,27 +388,18 @@ except usb.core.USBError as exc:
 
 @needs_umockdev
 def test_a_pending_read_completes_on_data_and_fails_at_once_on_unplug():
-    with EmulatedUsb("loopback") as emu:
-        proc = subprocess.Popen([sys.executable, "-c", CLIENT_PRELUDE + PENDING_CLIENT],
-                                env=emu.client_env(), stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, text=True)
-        try:
-            assert json.loads(proc.stdout.readline())["ready"]
-            proc.stdin.write("\n")
-            proc.stdin.flush()
-            time.sleep(0.2)                              # the read is pending by now
-            t_push = time.monotonic_ns()
-            emu.control("push", data_hex="c0ffee")
-            pushed = json.loads(proc.stdout.readline())
-            proc.stdin.write("\n")
-            proc.stdin.flush()
-            time.sleep(0.2)
-            t_unplug = time.monotonic_ns()
-            emu.unplug()
-            failed = json.loads(proc.stdout.readline())
-            proc.wait(30)
-        finally:
-            proc.kill()
+    with EmulatedUsb("loopback") as emu, \
+            interactive_client(emu, CLIENT_PRELUDE + PENDING_CLIENT) as (go, read):
+        go()
+        time.sleep(0.2)                              # the read is pending by now
+        t_push = time.monotonic_ns()
+        emu.control("push", data_hex="c0ffee")
+        pushed = read()
+        go()
+        time.sleep(0.2)
+        t_unplug = time.monotonic_ns()
+        emu.unplug()
+        failed = read()
     assert pushed["pushed"] == "c0ffee"
     assert (pushed["t_ns"] - t_push) * 1e-9 < 1.0      # answered on push, not on timeout
     assert failed["error"] == errno.ENODEV and failed["next_errno"] == errno.ENODEV
@@ -670,18 +685,10 @@ emit(**out)
 
 @needs_umockdev
 def test_replug_serves_a_fresh_open_while_old_handles_stay_dead():
-    with EmulatedUsb("loopback") as emu:
-        proc = subprocess.Popen([sys.executable, "-c", CLIENT_PRELUDE + REPLUG_CLIENT],
-                                env=emu.client_env(), stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, text=True)
-        try:
-            assert json.loads(proc.stdout.readline())["ready"]
-            emu.unplug()
-            emu.replug()
-            proc.stdin.write("\n")
-            proc.stdin.flush()
-            out = json.loads(proc.stdout.readline())
-            assert proc.wait(30) == 0
-        finally:
-            proc.kill()
+    with EmulatedUsb("loopback") as emu, \
+            interactive_client(emu, CLIENT_PRELUDE + REPLUG_CLIENT) as (go, read):
+        emu.unplug()
+        emu.replug()
+        go()
+        out = read()
     assert out == {"before": "before", "stale_errno": errno.ENODEV, "after": "after"}

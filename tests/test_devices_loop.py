@@ -266,10 +266,8 @@ def test_specs_parse_and_bad_ones_are_refused(tmp_path):
 
 
 @pytest.fixture
-def falcon_loop(stack):
-    """(emulator, device process): the real Falcon driver (pyusb → libusb → usbfs, emulated
-    by umockdev) in a running device loop, its emulated hand cutting grooves."""
-    from burrforce.server.bench.device import falcon_groove_path
+def emulated_usb():
+    """umockdev's USB emulation (``EmulatedUsb``), or a skip that says why it cannot run."""
     from burrforce.server.devices.emulation.launcher import (
         EmulatedUsb,
         emulation_unavailable_reason,
@@ -278,6 +276,16 @@ def falcon_loop(stack):
     reason = emulation_unavailable_reason()
     if reason is not None:
         pytest.skip(f"umockdev emulation unavailable: {reason}")
+    return EmulatedUsb
+
+
+@pytest.fixture
+def falcon_loop(stack, emulated_usb):
+    """(emulator, device process): the real Falcon driver (pyusb → libusb → usbfs, emulated
+    by umockdev) in a running device loop, its emulated hand cutting grooves."""
+    from burrforce.server.bench.device import falcon_groove_path
+
+    EmulatedUsb = emulated_usb
     session = _session(stack)
     with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
         process = DeviceProcess(_config(stack, session, device="falcon"))
@@ -329,17 +337,10 @@ def test_sigterm_zeroes_the_emulated_falcons_motors(falcon_loop):
     assert process.status()["state"] == "stopped"
 
 
-def test_sigterm_while_homing_unwinds_cleanly(stack):
+def test_sigterm_while_homing_unwinds_cleanly(stack, emulated_usb):
     """A Falcon waiting to be homed (nobody moves the grip) is stopped at once by SIGTERM,
     through close(), and says so."""
-    from burrforce.server.devices.emulation.launcher import (
-        EmulatedUsb,
-        emulation_unavailable_reason,
-    )
-
-    reason = emulation_unavailable_reason()
-    if reason is not None:
-        pytest.skip(f"umockdev emulation unavailable: {reason}")
+    EmulatedUsb = emulated_usb
     session = _session(stack)
     with EmulatedUsb("falcon", firmware_loaded=True) as emu:
         process = DeviceProcess(_config(stack, session, device="falcon"))
