@@ -17,6 +17,7 @@ from ...proto.mesh_chunks import (
     MeshMessage,
 )
 from ..bone.chunks import (
+    CHUNK_BRICKS_DEFAULT,
     changed_chunks,
     chunk_cells,
     chunk_shape,
@@ -44,7 +45,7 @@ class MeshRequest:
     """
 
     session: int
-    chunk_bricks: int = 2
+    chunk_bricks: int = CHUNK_BRICKS_DEFAULT
     session_frame: bool = True
     cw: bool = False
     frame_name: str = frames.DEFAULT_FRAME

@@ -14,6 +14,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from ...proto.mesh_chunks import MEDIA_TYPE, encode
+from ..bone.chunks import CHUNK_BRICKS_DEFAULT, CHUNK_BRICKS_MAX
 from .manager import ApiError, ControlPlane, ManagedSession
 from .mesh_pages import (
     MAX_BYTES_DEFAULT,
@@ -30,7 +31,8 @@ ws_router = APIRouter()
 
 Frame = Literal["session", "server"]
 Winding = Literal["ccw", "cw"]
-ChunkBricks = Query(2, ge=1, le=8, description="chunk edge in 8-voxel bricks")
+ChunkBricks = Query(CHUNK_BRICKS_DEFAULT, ge=1, le=CHUNK_BRICKS_MAX,
+                    description="chunk edge in 8-voxel bricks")
 FrameQuery = Query("session", description="session: the session's engine frame and unit; "
                                           "server: the server frame, mm")
 WindingQuery = Query("ccw", description="ccw: the right-handed cross product of a triangle's "
@@ -128,7 +130,8 @@ class WsQuery:
                 raise ValueError(f"{name} must be one of {', '.join(options)}, got {value!r}")
             return value
 
-        return cls(integer("since", None, 0, (1 << 63) - 1), integer("chunk_bricks", 2, 1, 8),
+        return cls(integer("since", None, 0, (1 << 63) - 1),
+                   integer("chunk_bricks", CHUNK_BRICKS_DEFAULT, 1, CHUNK_BRICKS_MAX),
                    choice("frame", "session", ("session", "server")),
                    choice("winding", "ccw", ("ccw", "cw")),
                    integer("interval_ms", 33, 10, 1000), q.get("token"))

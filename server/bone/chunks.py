@@ -30,6 +30,8 @@ from .mesh import vertex_normals
 #: Iso-level of the remaining density: half bone, as the full export's level 0.5.
 LEVEL = 127.5
 CHUNK_BRICKS_MAX = 8
+#: The default: the smallest updates while cutting (benchmarks/mesh.md).
+CHUNK_BRICKS_DEFAULT = 2
 
 
 @dataclass
