@@ -264,6 +264,9 @@ def test_snapshot_and_restore_round_trip(api, cut, tmp_path):
         api.snapshot(s["id"], name="groove")
     assert err.value.status == 409 and "groove" in err.value.detail
     api.download_snapshot("groove", tmp_path / "groove.bone.npz")
+    with pytest.raises(RestError) as err:  # a name the route's pattern passes, but not ours
+        api.download_snapshot("AJkd..-1e0ZRU", tmp_path / "bad.bone.npz")
+    assert err.value.status == 400 and "letters, digits" in err.value.detail
     assert (tmp_path / "groove.bone.npz").stat().st_size == snap["bytes"]
     job = api.reset(s["id"])
     assert job["state"] == "done" and job["kind"] == "reset", job

@@ -15,6 +15,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from .. import __version__
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
+from .sources import SourceError
 
 API_PREFIX = "/v1"
 _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
@@ -51,6 +52,11 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
         detail = ([{"loc": [], "msg": exc.detail, "type": "value_error"}]
                   if exc.status == 422 else exc.detail)
         return JSONResponse({"detail": detail}, status_code=exc.status, headers=headers)
+
+    @app.exception_handler(SourceError)
+    async def _source_error(request: Request, exc: SourceError) -> JSONResponse:
+        # A bad bone source or snapshot name raised anywhere below a route: its own status.
+        return await _api_error(request, ApiError(exc.status, str(exc)))
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

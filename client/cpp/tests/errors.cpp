@@ -169,8 +169,10 @@ int main(int argc, char** argv) {
       std::vector<int64_t> called_us(300, -1);
       // The first tick sent from 100 on stalls: a busy machine may itself skip tick 100.
       uint64_t stalled_at = 0;
-      st.set_pose_source([&](uint64_t tick, int64_t, ToolPose& p) {
+      std::vector<int64_t> due_us(300, -1);
+      st.set_pose_source([&](uint64_t tick, int64_t due, ToolPose& p) {
         called_us[tick] = now_us();
+        due_us[tick] = due;
         if (tick >= 100 && !stalled_at) {
           stalled_at = tick;
           std::this_thread::sleep_for(std::chrono::milliseconds(25));
@@ -193,7 +195,10 @@ int main(int argc, char** argv) {
       out << ", \"stall\": {\"sent\": " << c.sent.load()
           << ", \"skipped\": " << c.skipped_ticks.load()
           << ", \"stalled_at\": " << stalled_at << ", \"first_tick_after\": " << first_after
-          << ", \"gap_after_us\": " << gap_us
+          << ", \"gap_after_us\": " << gap_us << ", \"next_early_us\": "
+          << (first_after && first_after + 1 < 300 && called_us[first_after + 1] >= 0
+                  ? due_us[first_after + 1] - called_us[first_after + 1]
+                  : -1)
           << ", \"replies\": " << c.replies.load() << "}";
     }
     {  // The Streamer with a wrong key: BAD_TAG notices counted, never a force.
