@@ -7,7 +7,7 @@ from collections import deque
 from collections.abc import Sequence
 
 from ..proto.messages import Notice
-from .udp import IDENTITY, Result, SessionRules, now_us
+from .udp import IDENTITY, MAX_RESENDS, Result, ServerError, ServerGone, SessionRules, now_us
 
 #: Unclaimed replies kept for :meth:`AsyncBurrClient.receive` (oldest dropped first).
 QUEUE_LIMIT = 1024
@@ -20,22 +20,30 @@ class _Protocol(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: object) -> None:
         self.owner._arrived(data, now_us())
 
-    def error_received(self, exc: Exception) -> None:  # ICMP errors: nothing listens yet
-        self.owner.counters["icmp_errors"] = self.owner.counters.get("icmp_errors", 0) + 1
+    def error_received(self, exc: Exception) -> None:  # ICMP errors: nothing listens
+        self.owner._gone(exc)
 
 
 class AsyncBurrClient:
     """An asyncio UDP client for one session. Create with :meth:`connect`.
 
     ``exchange`` awaits the reply to its own packet; replies nobody awaits are queued for
-    :meth:`receive` (at most QUEUE_LIMIT). Tags, staleness and counters as ``BurrClient``.
+    :meth:`receive` (at most QUEUE_LIMIT). Tags, staleness, the stream handshake and counters
+    as ``BurrClient``; so is :class:`ServerGone`: when nothing listens on the server's port,
+    pending exchanges and the next :meth:`send` or :meth:`receive` raise it (``icmp_errors``
+    counts the operating system's reports).
     """
 
     def __init__(self, session: int, key: bytes | str | None, timeout_s: float,
-                 first_seq: int) -> None:
+                 first_seq: int, host: str = "", port: int = 0) -> None:
         self.rules = SessionRules(session, key, first_seq)
         self.counters = self.rules.counters
+        self.counters["icmp_errors"] = 0
         self.timeout_s = timeout_s
+        self.host = host
+        self.port = port
+        #: A "port unreachable" not yet reported to the caller.
+        self._gone_pending = False
         self._waiting: dict[int, asyncio.Future] = {}
         self._queue: deque[Result | Notice] = deque(maxlen=QUEUE_LIMIT)
         self._queued = asyncio.Event()
@@ -45,7 +53,7 @@ class AsyncBurrClient:
     async def connect(cls, host: str, port: int, session: int = 1,
                       key: bytes | str | None = None, timeout_s: float = 0.1,
                       first_seq: int = 1) -> AsyncBurrClient:
-        client = cls(session, key, timeout_s, first_seq)
+        client = cls(session, key, timeout_s, first_seq, host, port)
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
             lambda: _Protocol(client), remote_addr=(host, port))
@@ -69,14 +77,38 @@ class AsyncBurrClient:
              rpm: float = 0.0, spindle_on: bool = True,
              velocity: Sequence[float] | None = None, flags: int = 0,
              t_us: int | None = None) -> int:
+        """Send one pose (as :meth:`BurrClient.send`); returns its sequence number.
+
+        Raises:
+            ServerGone: an earlier datagram found nothing listening on the server's port.
+        """
         if self._transport is None:
             raise RuntimeError("not connected: use await AsyncBurrClient.connect(...)")
+        self._raise_if_gone()
         seq, datagram = self.rules.datagram(position, orientation, rpm, spindle_on, velocity,
                                             flags, t_us)
         self._transport.sendto(datagram)
         return seq
 
+    def _gone(self, exc: Exception) -> None:
+        if not isinstance(exc, ConnectionRefusedError):
+            return
+        self.counters["icmp_errors"] += 1
+        gone = ServerGone(self.host, self.port)
+        waiting = [f for f in self._waiting.values() if not f.done()]
+        for future in waiting:
+            future.set_exception(gone)
+        # Reported once: to the exchanges waiting, else to the next send or receive.
+        self._gone_pending = not waiting
+        self._queued.set()
+
+    def _raise_if_gone(self) -> None:
+        if self._gone_pending:
+            self._gone_pending = False
+            raise ServerGone(self.host, self.port)
+
     def _arrived(self, data: bytes, arrived_us: int) -> None:
+        self._gone_pending = False  # the server answers: whatever went before is over
         item = self.rules.accept(data, arrived_us)
         if item is None:
             return
@@ -89,37 +121,49 @@ class AsyncBurrClient:
         self._queued.set()
 
     async def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
-        """The next reply or notice nobody awaited, or None after the timeout."""
-        if not self._queue:
+        """The next reply or notice nobody awaited, or None after the timeout.
+
+        Raises:
+            ServerGone: nothing listens on the server's port (reported once).
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + (self.timeout_s if timeout_s is None else timeout_s)
+        while True:
+            self._raise_if_gone()
+            if self._queue:
+                return self._queue.popleft()
             self._queued.clear()
             try:
-                await asyncio.wait_for(self._queued.wait(),
-                                       self.timeout_s if timeout_s is None else timeout_s)
+                await asyncio.wait_for(self._queued.wait(), max(deadline - loop.time(), 0.0))
             except asyncio.TimeoutError:
                 return None
-        return self._queue.popleft()
 
     async def exchange(self, position: Sequence[float],
                        orientation: Sequence[float] = IDENTITY, rpm: float = 0.0,
                        spindle_on: bool = True, velocity: Sequence[float] | None = None,
                        flags: int = 0, timeout_s: float | None = None) -> Result:
-        """Send a pose and await its reply.
+        """Send a pose and await its reply; through the stream handshake as
+        :meth:`BurrClient.exchange` (``timeout_s`` per send).
 
         Raises:
             TimeoutError: no reply within the timeout.
             ServerError: a notice or an error reply.
+            ServerGone: nothing listens on the server's port.
         """
-        future = asyncio.get_running_loop().create_future()
-        seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
-        self._waiting[seq] = future
         wait = self.timeout_s if timeout_s is None else timeout_s
-        try:
-            item = await asyncio.wait_for(future, wait)
-        except asyncio.TimeoutError:
-            self.counters["timeouts"] += 1
-            raise TimeoutError(f"no reply to packet {seq} within {wait:g} s") from None
-        finally:
-            self._waiting.pop(seq, None)
-        result = SessionRules.answer_to(item, seq)
-        assert result is not None  # the future of ``seq`` only ever gets ``seq``'s answer
-        return result
+        for _ in range(MAX_RESENDS + 1):
+            future = asyncio.get_running_loop().create_future()
+            seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
+            self._waiting[seq] = future
+            try:
+                item = await asyncio.wait_for(future, wait)
+            except asyncio.TimeoutError:
+                self.counters["timeouts"] += 1
+                raise TimeoutError(f"no reply to packet {seq} within {wait:g} s") from None
+            finally:
+                self._waiting.pop(seq, None)
+            result = SessionRules.answer_to(item, seq)
+            # The future of ``seq`` only ever gets ``seq``'s answer.
+            if isinstance(result, Result):
+                return result
+        raise ServerError(item.error, seq)

@@ -26,7 +26,7 @@ from ..proto.messages import (
 )
 from . import connection
 from .trajectory import Waypoint, line, stream
-from .udp import BurrClient, Result
+from .udp import BurrClient, Result, ServerGone
 
 PROBE_SPEED_MM_S = 10.0
 PLUNGE_SPEED_MM_S = 1.0
@@ -144,7 +144,14 @@ def run_demo(client: BurrClient, frame_name: str, x_mm: float = -5.0, y_mm: floa
                 f"{rep.resistive[0]:7.3f} {rep.resistive[1]:7.3f} {rep.resistive[2]:7.3f} "
                 f"{result.rtt_us:7.0f}  {names}")
 
-    out = stream(client, waypoints, rate_hz, on_result)
+    def on_outage(gone: bool, i: int) -> None:
+        if gone:
+            say(f"{i / rate_hz:6.2f} the server is gone (is `burrforce serve` still running?); "
+                "sending on until it is back")
+        else:
+            say(f"{i / rate_hz:6.2f} the server is back: a new stream, cutting resumes")
+
+    out = stream(client, waypoints, rate_hz, on_result, on_outage=on_outage)
     for i, result in enumerate(out.results):
         if result is None:
             run.lost += 1
@@ -329,6 +336,8 @@ def main(args: argparse.Namespace) -> int:
         except TimeoutError:
             raise RuntimeError(f"no answer from {host}:{port}: is `burrforce serve` running "
                                "there?") from None
+        except ServerGone as error:  # before or after the groove: nothing to go on with
+            raise RuntimeError(str(error)) from None
     result = summary(run)
     expected = model_expectation(args.depth_mm, args.feed_mm_s, args.rpm, args.angle_deg,
                                  args.radius_mm)

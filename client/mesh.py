@@ -17,23 +17,32 @@ from .rest import BurrRest
 
 
 class ChunkedMesh:
-    """Chunk index → its mesh, and the bone version the copy is at.
+    """Chunk index → its mesh, and the bone (generation, version) the copy is at.
 
     Attributes:
         chunks: chunk index (a, b, c) → :class:`~burrforce.proto.mesh_chunks.Chunk`.
         have: the bone version every chunk is at least as new as (None before the first
-            complete update).
+            complete update, and after an update that spanned two bones: ask for
+            everything).
+        generation: the bone generation the copy is of (None: not known, from format
+            version 1 messages, or no copy yet).
         replaced: chunks replaced or removed by updates after the first, in all.
     """
 
     def __init__(self) -> None:
         self.chunks: dict[tuple[int, int, int], Chunk] = {}
         self.have: int | None = None
+        self.generation: int | None = None
         self.replaced = 0
         self._low: int | None = None
+        self._generations: set[int | None] = set()
+        self._started_full = False
 
     def apply(self, m: MeshMessage) -> bool:
         """Apply one message; True when it completed an update (``have`` moved)."""
+        if self._low is None:  # the first message of an update
+            self._generations, self._started_full = set(), m.full
+        self._generations.add(m.generation)
         if m.full:
             self.chunks.clear()
         for c in m.chunks:
@@ -47,6 +56,14 @@ class ChunkedMesh:
         if m.more:
             return False
         self.have, self._low = self._low, None
+        (generation, *others) = self._generations
+        if others or (generation is not None and not self._started_full
+                      and self.generation is not None and generation != self.generation):
+            # Pages of two bones, or changes of another bone on top of this copy (the bone
+            # was replaced between two requests): the copy cannot be trusted; start over.
+            self.have = self.generation = None
+        elif generation is not None:
+            self.generation = generation
         return True
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -75,13 +92,16 @@ class ChunkedMesh:
 
 def sync_rest(api: BurrRest, session: int, mesh: ChunkedMesh, **query: object) -> int:
     """Bring ``mesh`` up to the bone over REST (every page); returns the pages fetched.
-    ``query``: chunk_bricks, frame, winding, max_bytes (proto/MESH.md §2)."""
+    ``query``: chunk_bricks, frame, winding, max_bytes (proto/MESH.md §2). Asks for format
+    version 2 and names the copy's generation, so a replaced bone comes back FULL."""
     cursor, pages = 0, 0
-    since = mesh.have
+    since, generation = mesh.have, mesh.generation  # the same for every page of the update
     while True:
-        params = {**query, "cursor": cursor}
+        params = {"format_version": 2, **query, "cursor": cursor}
         if since is not None:
             params["since"] = since
+            if generation is not None:
+                params["generation"] = generation
         m = decode(api.mesh_chunks(session, **params))
         pages += 1
         mesh.apply(m)
@@ -91,14 +111,19 @@ def sync_rest(api: BurrRest, session: int, mesh: ChunkedMesh, **query: object) -
 
 
 def watch(url: str, token: str, session: int, since: int | None = None,
-          timeout_s: float = 10.0, **query: object) -> Iterator[MeshMessage]:
+          timeout_s: float = 10.0, generation: int | None = None,
+          **query: object) -> Iterator[MeshMessage]:
     """The WebSocket push channel's messages, as they come (a blocking iterator; close it to
-    disconnect). ``url`` is the REST URL (``http://host:port``)."""
+    disconnect), in format version 2 (with the bone generation) unless ``query`` says
+    otherwise. ``url`` is the REST URL (``http://host:port``). Reconnecting with a copy:
+    ``since=mesh.have, generation=mesh.generation`` (a replaced bone comes back FULL)."""
     from websockets.sync.client import connect
 
-    params = {k: str(v) for k, v in query.items()}
+    params = {k: str(v) for k, v in {"format_version": 2, **query}.items()}
     if since is not None:
         params["since"] = str(since)
+        if generation is not None:
+            params["generation"] = str(generation)
     ws_url = url.rstrip("/").removesuffix("/v1").replace("http", "ws", 1) \
         + f"/v1/sessions/{session}/mesh/ws"
     if params:

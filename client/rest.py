@@ -24,6 +24,7 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -435,21 +436,31 @@ class BurrRest:
             params["material"] = [int(m) for m in materials]
         return self._download(f"/sessions/{int(session_id)}/export/mesh", params, path)
 
-    def deltas(self, session_id: int, since: int, max_bricks: int = 4096) -> dict:
-        """The 8³-voxel bricks changed since bone version ``since``.
+    def deltas(self, session_id: int, since: int | None = None, max_bricks: int = 4096,
+               generation: int | None = None) -> dict:
+        """The 8³-voxel bricks changed since bone version ``since`` of bone ``generation``
+        (``since`` None: every brick with bone, ``full``).
 
         Returns the message of ``burrforce.server.bone.deltas`` (format
         ``burrforce-bricks`` 1) with ``bricks`` as int32 (count, 3) brick indices and
         ``remaining`` as uint8 (count, 8, 8, 8) remaining densities: brick (a, b, c) covers
-        voxels [8a:8a+8, 8b:8b+8, 8c:8c+8]. Ask next with ``since=next_since``; on
+        voxels [8a:8a+8, 8b:8b+8, 8c:8c+8]. Ask next with ``since=next_since`` and
+        ``generation=`` the message's ``generation``. When ``full`` is set (the bone was
+        replaced: a reset, load or restore) set the whole copy to 0 first (of
+        ``grid_shape``) — ``deltas.apply_delta`` does — and keep the new generation; on
         ``reload`` fetch the whole volume (:meth:`export_volume`).
 
         Raises:
             RestError: 409 when the session has deltas off; status 0 for an answer that is
                 not such a message.
         """
+        params = {"max_bricks": int(max_bricks)}
+        if since is not None:
+            params["since"] = int(since)
+        if generation is not None:
+            params["generation"] = int(generation)
         response = self._send("GET", f"{API_PREFIX}/sessions/{int(session_id)}/deltas",
-                              params={"since": int(since), "max_bricks": int(max_bricks)})
+                              params=params)
         try:
             return decode_delta(response.content)
         except ValueError as exc:
@@ -513,7 +524,20 @@ class BurrRest:
 
     def download_snapshot(self, name: str, path: str | Path) -> Path:
         """Download snapshot ``name`` (a ``.bone.npz``) to ``path``."""
-        return self._download(f"/snapshots/{_snapshot_name(name)}", {}, path)
+        return self._download(f"/snapshots/{_quoted(_snapshot_name(name))}", {}, path)
+
+    def delete_snapshot(self, name: str, force: bool = False) -> dict:
+        """Delete snapshot ``name`` (``NAME`` or ``snapshot:NAME``). Returns ``deleted``,
+        ``bytes`` freed, ``in_use_by`` (sessions whose bone came from it: they keep it, but
+        their reset, and their resume after a restart, would fail) and a ``note`` saying so.
+        Such a file is deleted only with ``force`` (else 409).
+
+        Raises:
+            RestError: 404 when there is no such snapshot, 400 for a name that is not a plain
+                name, 409 while a bone load reads it.
+        """
+        query = "?force=true" if force else ""
+        return self._json("DELETE", f"/snapshots/{_quoted(_snapshot_name(name))}{query}")
 
     def restore(self, session_id: int, snapshot: str, wait: bool = True) -> dict:
         """Load snapshot ``snapshot`` (``NAME`` or ``snapshot:NAME``) into the session, its
@@ -543,8 +567,65 @@ class BurrRest:
         return self._json("DELETE", f"/sessions/{int(session_id)}/recording")
 
     def recordings(self) -> list[dict]:
-        """The recordings on the server: ``name``, ``bytes``, ``complete``, ``replay``."""
+        """The recordings on the server: ``name``, ``bytes``, ``files``, ``created``,
+        ``modified`` (Unix s), ``complete``, ``recording_session`` (the session writing it,
+        or None) and ``replay``."""
         return self._json("GET", "/recordings")
+
+    def download_recording(self, name: str, path: str | Path) -> Path:
+        """Download recording ``name`` (``NAME`` or ``NAME.burrrec``) to ``path`` as one
+        uncompressed tar archive of its ``NAME.burrrec/`` directory (unpack it with
+        ``tarfile`` or ``tar xf``, then ``burrforce replay``).
+
+        Raises:
+            RestError: 404 when there is no such recording, 409 while a session writes it.
+        """
+        return self._download(f"/recordings/{_quoted(name)}", {}, path)
+
+    def delete_recording(self, name: str) -> dict:
+        """Delete recording ``name``; returns ``deleted`` and ``bytes`` freed.
+
+        Raises:
+            RestError: 404 when there is no such recording, 409 while a session writes it
+                (:meth:`stop_recording` first).
+        """
+        return self._json("DELETE", f"/recordings/{_quoted(name)}")
+
+    # -- storage --------------------------------------------------------------------------------
+    def storage(self) -> dict:
+        """The data directory's usage: ``budget_bytes`` (0: no limit), ``used_bytes``,
+        ``reserved_bytes`` (room running recordings may still fill), ``free_bytes`` (None
+        without a budget), ``disk_free_bytes`` and ``kinds``: per kind (uploads, snapshots,
+        recordings, exports, journal) its ``bytes``, ``items`` and whether it is ``counted``
+        against the budget. Writes that do not fit are refused (RestError 413 for an upload,
+        507 for a snapshot, export or recording)."""
+        return self._json("GET", "/storage")
+
+    def uploads(self) -> list[dict]:
+        """Uploaded bone files: ``id``, ``source`` (``upload:ID``), ``file``, ``bytes``,
+        ``created`` (Unix s), ``in_use_by`` (sessions whose bone came from it)."""
+        return self._json("GET", "/uploads")
+
+    def download_upload(self, upload_id: str, path: str | Path) -> Path:
+        """Download upload ``upload_id`` (``ID`` or ``upload:ID``) to ``path``, as it was sent.
+
+        Raises:
+            RestError: 404 when there is no such upload, 400 for an id this server does not
+                issue.
+        """
+        return self._download(f"/uploads/{_quoted(_upload_id(upload_id))}", {}, path)
+
+    def delete_upload(self, upload_id: str, force: bool = False) -> dict:
+        """Delete upload ``upload_id`` (``ID`` or ``upload:ID``). Returns ``deleted``,
+        ``bytes`` freed, ``in_use_by`` (sessions whose bone came from it: they keep it, but
+        their reset, and their resume after a restart, would fail) and a ``note`` saying so.
+        Such a file is deleted only with ``force`` (else 409).
+
+        Raises:
+            RestError: 404 when there is no such upload, 409 while a bone load reads it.
+        """
+        query = "?force=true" if force else ""
+        return self._json("DELETE", f"/uploads/{_quoted(_upload_id(upload_id))}{query}")
 
 
 def _fit_body(cases: Sequence[Mapping[str, Any]], fit: str, k: float | None,
@@ -573,6 +654,16 @@ def _bone_request(source: str, kind: str | None, voxel_mm: float | None,
 
 def _snapshot_name(name: str) -> str:
     return name[len("snapshot:"):] if name.startswith("snapshot:") else name
+
+
+def _upload_id(upload_id: str) -> str:
+    return upload_id[len("upload:"):] if upload_id.startswith("upload:") else upload_id
+
+
+def _quoted(name: str) -> str:
+    """One path segment: a '/' in a name stays in the name (the server refuses it) instead
+    of reaching another route."""
+    return quote(name, safe="")
 
 
 def _flag(value: bool) -> str:

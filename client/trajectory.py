@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -12,7 +13,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ..proto.messages import Notice
-from .udp import IDENTITY, BurrClient, Result, now_us
+from .udp import IDENTITY, BurrClient, Result, ServerGone, now_us
+
+log = logging.getLogger("burrforce.client")
 
 #: Sleep until this close to a send time, then spin (sleep overshoots by ~0.1 ms or more).
 SPIN_S = 0.0005
@@ -34,13 +37,18 @@ class StreamResult:
 
     Attributes:
         results: one entry per waypoint: its Result, or None if no reply arrived.
-        notices: notices received (the server refused those packets).
+        notices: notices received (the server refused those packets, or answered a hello).
         late_sends: sends more than one period behind schedule (this machine was busy).
+        outages: times the server went away mid-stream (:class:`ServerGone`).
+        outage_ticks: waypoints sent while it was away (from the tick the outage was noticed
+            up to the first answer after it): their results are None.
     """
 
     results: list[Result | None]
     notices: list[Notice] = field(default_factory=list)
     late_sends: int = 0
+    outages: int = 0
+    outage_ticks: int = 0
 
     @property
     def lost(self) -> int:
@@ -52,13 +60,21 @@ class StreamResult:
 
 def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1000.0,
            on_result: Callable[[int, Result], None] | None = None,
-           linger_s: float = 0.05) -> StreamResult:
+           linger_s: float = 0.05,
+           on_outage: Callable[[bool, int], None] | None = None) -> StreamResult:
     """Send ``waypoints`` at ``rate_hz`` on an absolute schedule (no drift), each stamped with
     its scheduled time, collecting replies as they arrive between sends; waits ``linger_s``
     after the last send for stragglers.
 
     ``on_result(index, result)`` is called as each reply arrives (keep it short: it runs
     between sends).
+
+    The server going away does not end the stream: the outage is counted (``outages``,
+    ``outage_ticks``) and reported to ``on_outage(True, index)`` (without it: a warning on
+    the logger ``burrforce.client``); sending goes on on schedule, and when the server
+    answers again ``on_outage(False, index)`` is called (or a second warning logged). A
+    restarted server answers WRONG_STREAM, the client says hello and streams on (its first
+    reply STALE, then cutting resumes).
     """
     if not 0.0 < rate_hz <= 100_000.0:
         raise ValueError(f"rate_hz must be in (0, 100000], got {rate_hz}")
@@ -66,15 +82,43 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
     index_of: dict[int, int] = {}
     results: list[Result | None] = []
     out = StreamResult(results)
+    gone_since: list[int] = []  # [the index the outage was noticed at] while it lasts
+
+    def gone(error: ServerGone) -> None:
+        if gone_since:
+            return
+        k = len(results)
+        gone_since.append(k)
+        out.outages += 1
+        if on_outage is not None:
+            on_outage(True, k)
+        else:
+            log.warning("%s; sending on, waiting for it to come back (waypoint %d)", error, k)
+
+    def back() -> None:
+        k = len(results)
+        out.outage_ticks += k - gone_since.pop()
+        if on_outage is not None:
+            on_outage(False, k)
+        else:
+            log.warning("the burrforce server at %s:%s answers again (waypoint %d)",
+                        client.host, client.port, k)
 
     def collect(until: float) -> None:
         while True:
             remaining = until - time.perf_counter()
-            message = client.receive(max(remaining - SPIN_S, 0.0) if remaining > 0 else 0.0)
+            try:
+                message = client.receive(max(remaining - SPIN_S, 0.0) if remaining > 0
+                                         else 0.0)
+            except ServerGone as error:
+                gone(error)
+                continue
             if message is None:
                 if time.perf_counter() >= until:
                     return
                 continue
+            if gone_since:
+                back()
             if isinstance(message, Notice):
                 out.notices.append(message)
                 continue
@@ -100,14 +144,21 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
             elif due > now:
                 collect(due)
             # Stamped with its scheduled time: a late send must not look like a faster motion.
-            seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None, w.flags,
-                              start_us + round(k * period * 1e6))
-            index_of[seq] = k
+            try:
+                seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None,
+                                  w.flags, start_us + round(k * period * 1e6))
+            except ServerGone as error:
+                gone(error)  # the next send goes out: the OS reports each refusal once
+                seq = None
+            if seq is not None:
+                index_of[seq] = k
             results.append(None)
             # Index entries of replies that never come must not pile up.
             if len(index_of) > 4 * rate_hz:
                 index_of.pop(next(iter(index_of)))
         collect(time.perf_counter() + linger_s)
+        if gone_since:  # still away at the end
+            out.outage_ticks += len(results) - gone_since.pop()
     finally:
         gc.unfreeze()
     return out

@@ -1,4 +1,9 @@
-"""The UDP client: send poses, get decoded, verified replies with their round-trip time."""
+"""The UDP client: send poses, get decoded, verified replies with their round-trip time.
+
+The client opens its stream itself (SPEC.md 5.2): while it has none, every POSE it sends is
+a hello; the server's verified NEW_STREAM notice gives it one, a verified WRONG_STREAM notice
+takes it away again (the stream ended: REST restart-stream, or a server restart).
+"""
 
 from __future__ import annotations
 
@@ -10,9 +15,12 @@ from typing import NamedTuple
 from ..proto.codec import ProtocolError, decode_server_message, encode_pose
 from ..proto.messages import (
     ERROR_NAMES,
-    FLAG_NEW_STREAM,
+    HELLO_STREAM,
     MAX_REPLY_BYTES,
+    NEW_STREAM,
     OK,
+    SEQ_MODULUS,
+    WRONG_STREAM,
     Notice,
     Pose,
     Reply,
@@ -21,6 +29,12 @@ from ..proto.sequence import seq_after, seq_next
 from ..proto.tag import Tagger, parse_key
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
+#: The notices of the stream handshake: they answer a POSE that was not ticked, and the pose
+#: is to be sent again (in the new stream, or as a hello).
+HANDSHAKE_NOTICES = (NEW_STREAM, WRONG_STREAM)
+#: How often :meth:`BurrClient.exchange` sends one pose again through the handshake
+#: (WRONG_STREAM → hello → NEW_STREAM → the pose: two; one spare for a race).
+MAX_RESENDS = 3
 
 
 class Result(NamedTuple):
@@ -54,7 +68,26 @@ _HINTS = {
     6: " (wrong or missing key: use the key the server printed)",
     3: " (protocol version mismatch: update the client or the server)",
     7: " (a value is unusable: NaN, infinite, or a quaternion that is not unit length)",
+    11: " (the stream handshake did not settle: is another client using this session?)",
+    12: " (the stream handshake did not settle: is another client using this session?)",
 }
+
+
+class ServerGone(ConnectionError):
+    """Nothing listens on the server's UDP port any more (the operating system said so: an
+    ICMP "port unreachable" came back). The server stopped or restarted; a client that keeps
+    sending finds it again when it is back (it then says hello and streams on).
+
+    Attributes:
+        host, port: the server's UDP endpoint.
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host = host
+        self.port = port
+        super().__init__(f"the burrforce server at {host}:{port} is gone: nothing listens on "
+                         "its UDP port. Is `burrforce serve` running? (GET /v1/health on its "
+                         "REST port answers while it runs)")
 
 
 def now_us() -> int:
@@ -63,12 +96,16 @@ def now_us() -> int:
 
 
 class SessionRules:
-    """What both clients do for one session, without I/O: number and tag outgoing POSEs, and
-    decide which incoming datagrams to believe.
+    """What every client does for one session, without I/O: number, tag and put its stream
+    into outgoing POSEs, run the stream handshake, and decide which incoming datagrams to
+    believe.
 
-    Replies whose tag does not verify, that are not well-formed, that belong to another
-    session, or that are older than one already accepted are dropped and counted in
-    ``counters`` (``bad_tag``, ``malformed``, ``foreign``, ``stale``).
+    ``stream`` is the client's stream (0: none yet; every POSE is then a hello). Replies
+    whose tag does not verify, that are not well-formed, that belong to another session, or
+    that are older than one already accepted are dropped and counted in ``counters``
+    (``bad_tag``, ``malformed``, ``foreign``, ``stale``); so are NEW_STREAM and WRONG_STREAM
+    notices that do not verify. ``hellos`` counts hellos sent, ``streams`` streams adopted,
+    ``wrong_stream`` streams the server ended.
     """
 
     def __init__(self, session: int, key: bytes | str | None, first_seq: int) -> None:
@@ -76,25 +113,50 @@ class SessionRules:
             key = parse_key(key)
         self.session = session
         self.tagger = Tagger(key) if key else None
-        self.seq = first_seq % (1 << 32)
+        self.seq = first_seq % SEQ_MODULUS
         self.newest: int | None = None
+        self.stream = HELLO_STREAM
+        #: The seq of the first hello since ``stream`` became 0 (None: none sent yet). Every
+        #: POSE sent since went out as a hello, so the hellos are [this, self.seq).
+        self._hello_from: int | None = None
         self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
-                         "notices": 0, "timeouts": 0, "foreign": 0}
+                         "notices": 0, "timeouts": 0, "foreign": 0, "hellos": 0,
+                         "streams": 0, "wrong_stream": 0}
 
     def datagram(self, position: Sequence[float], orientation: Sequence[float], rpm: float,
                  spindle_on: bool, velocity: Sequence[float] | None, flags: int,
                  t_us: int | None) -> tuple[int, bytes]:
-        """(seq, encoded POSE): the next sequence number, NEW_STREAM until the server has
-        answered (so a restarted client is not taken for a replay of the old one)."""
+        """(seq, encoded POSE): the next sequence number, in the client's stream, or a hello
+        (stream 0: the server answers NEW_STREAM and does not tick it) while it has none."""
         seq = self.seq
         self.seq = seq_next(seq)
-        if self.newest is None:
-            flags |= FLAG_NEW_STREAM
+        if self.stream == HELLO_STREAM:
+            if self._hello_from is None:
+                self._hello_from = seq
+            self.counters["hellos"] += 1
         pose = Pose(self.session, seq, now_us() if t_us is None else t_us,
                     tuple(position), tuple(orientation), rpm, spindle_on,  # type: ignore[arg-type]
-                    None if velocity is None else tuple(velocity), flags)  # type: ignore[arg-type]
+                    None if velocity is None else tuple(velocity), flags,  # type: ignore[arg-type]
+                    self.stream)
         self.counters["sent"] += 1
         return seq, encode_pose(pose, self.tagger)
+
+    def _sent_hello(self, seq: int) -> bool:
+        """``seq`` is a hello sent since the client's stream became 0."""
+        first = self._hello_from
+        return first is not None and (seq - first) % SEQ_MODULUS < (self.seq - first) % SEQ_MODULUS
+
+    def _handshake(self, notice: Notice) -> None:
+        """Follow a verified NEW_STREAM or WRONG_STREAM notice."""
+        if notice.error == NEW_STREAM:
+            if (self.stream == HELLO_STREAM and notice.stream != HELLO_STREAM
+                    and self._sent_hello(notice.seq)):
+                self.stream = notice.stream
+                self._hello_from = None
+                self.counters["streams"] += 1
+        elif notice.stream == self.stream != HELLO_STREAM:
+            self.stream = HELLO_STREAM
+            self.counters["wrong_stream"] += 1
 
     def accept(self, data: bytes, arrived_us: int) -> Result | Notice | None:
         """The datagram (arrived at ``arrived_us``) as a Result or Notice, or None if it is
@@ -104,12 +166,14 @@ class SessionRules:
         except ProtocolError:
             self.counters["malformed"] += 1
             return None
-        if self.tagger is not None and isinstance(message, Reply) and (
+        handshake = isinstance(message, Notice) and message.error in HANDSHAKE_NOTICES
+        if self.tagger is not None and (isinstance(message, Reply) or handshake) and (
                 message.tag is None or not self.tagger.verify(data)):
-            # Replies of a keyed session are always tagged: anything else is forged or
-            # corrupt. Notices are passed on unverified: they carry no force, and one that
-            # says BAD_TAG is tagged with the server's key, which a client with the wrong key
-            # cannot check — yet it must learn that its key is wrong.
+            # Replies and handshake notices of a keyed session are always tagged: anything
+            # else is forged or corrupt (a forged WRONG_STREAM would end the stream). Other
+            # notices are passed on unverified: they carry no force and change nothing, and
+            # one that says BAD_TAG is tagged with the server's key, which a client with the
+            # wrong key cannot check — yet it must learn that its key is wrong.
             self.counters["bad_tag"] += 1
             return None
         if message.session != self.session:
@@ -118,6 +182,8 @@ class SessionRules:
         self.counters["received"] += 1
         if isinstance(message, Notice):
             self.counters["notices"] += 1
+            if handshake:
+                self._handshake(message)
             return message
         if self.newest is not None and not seq_after(message.seq, self.newest):
             self.counters["stale"] += 1
@@ -128,16 +194,20 @@ class SessionRules:
         return Result(message, float(arrived_us - message.t_client_us), offset)
 
     @staticmethod
-    def answer_to(item: Result | Notice, seq: int) -> Result | None:
-        """``item`` if it answers packet ``seq`` (None if it answers another).
+    def answer_to(item: Result | Notice, seq: int) -> Result | Notice | None:
+        """``item`` if it answers packet ``seq`` (None if it answers another): a Result, or a
+        NEW_STREAM / WRONG_STREAM notice (the pose was not ticked: send it again, it now goes
+        out in the new stream or as a hello).
 
         Raises:
-            ServerError: it answers ``seq`` with a notice or an error reply.
+            ServerError: it answers ``seq`` with another notice or an error reply.
         """
         if isinstance(item, Notice):
-            if item.seq == seq:
-                raise ServerError(item.error, seq)
-            return None
+            if item.seq != seq:
+                return None
+            if item.error in HANDSHAKE_NOTICES:
+                return item
+            raise ServerError(item.error, seq)
         if item.reply.seq != seq:
             return None
         if item.reply.error != OK:
@@ -153,11 +223,12 @@ class BurrClient:
         session: the session id.
         key: the session key (bytes or hex), or None for a session without one.
         timeout_s: how long :meth:`exchange` waits for a reply.
-        first_seq: the first sequence number (the server accepts any number to start a
-            stream, and again after the session has been idle for a second).
+        first_seq: the first sequence number (any: the server starts a stream's sequence at
+            the stream's first POSE).
 
     Replies are checked as ``SessionRules`` says; ``counters`` counts what was sent,
-    received and dropped.
+    received and dropped. :meth:`send`, :meth:`receive` and :meth:`exchange` raise
+    :class:`ServerGone` when nothing listens on the server's port any more.
     """
 
     def __init__(self, host: str, port: int, session: int = 1, key: bytes | str | None = None,
@@ -165,6 +236,8 @@ class BurrClient:
         self.rules = SessionRules(session, key, first_seq)
         self.counters = self.rules.counters
         self.timeout_s = timeout_s
+        self.host = host
+        self.port = port
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         # connect(): the kernel then delivers only the server's datagrams to this socket.
@@ -188,15 +261,26 @@ class BurrClient:
         ``t_us`` is when the pose was sampled, on :func:`now_us`'s clock (default: now). The
         server estimates velocity from these stamps, so a pose sent late must still carry
         its own time; the reply's round trip then counts from the sample, not the send.
+
+        Raises:
+            ServerGone: an earlier datagram found nothing listening on the server's port.
         """
         seq, datagram = self.rules.datagram(position, orientation, rpm, spindle_on, velocity,
                                             flags, t_us)
-        self.sock.send(datagram)
+        try:
+            self.sock.send(datagram)
+        except ConnectionRefusedError:  # the ICMP answer to an earlier datagram
+            raise ServerGone(self.host, self.port) from None
         return seq
 
     def receive(self, timeout_s: float | None = None) -> Result | Notice | None:
         """The next verified reply or notice, or None if none arrives within the timeout
-        (0: only what has already arrived)."""
+        (0: only what has already arrived).
+
+        Raises:
+            ServerGone: nothing listens on the server's port (reported once per ICMP error:
+                a later call waits again).
+        """
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
         while True:
             remaining = deadline - time.monotonic()
@@ -206,9 +290,7 @@ class BurrClient:
             except (BlockingIOError, TimeoutError):
                 return None
             except ConnectionRefusedError:  # ICMP: nothing listens on the server's port
-                if remaining <= 0.0:
-                    return None
-                continue
+                raise ServerGone(self.host, self.port) from None
             message = self.rules.accept(data, now_us())
             if message is not None:
                 return message
@@ -217,20 +299,27 @@ class BurrClient:
                  rpm: float = 0.0, spindle_on: bool = True,
                  velocity: Sequence[float] | None = None, flags: int = 0,
                  timeout_s: float | None = None) -> Result:
-        """Send a pose and wait for its reply.
+        """Send a pose and wait for its reply. Without a stream the pose goes out as a hello:
+        then, once the server has given one, the same pose again in it, and its reply is
+        returned (likewise after the server ended the stream). ``timeout_s`` is per send.
 
         Raises:
             TimeoutError: no reply within the timeout.
             ServerError: the server answered with a notice or an error reply.
+            ServerGone: nothing listens on the server's port.
         """
-        seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
         wait = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + wait
-        while True:
-            message = self.receive(max(deadline - time.monotonic(), 0.0))
-            if message is None:
-                self.counters["timeouts"] += 1
-                raise TimeoutError(f"no reply to packet {seq} within {wait:g} s")
-            result = SessionRules.answer_to(message, seq)
-            if result is not None:
+        for _ in range(MAX_RESENDS + 1):
+            seq = self.send(position, orientation, rpm, spindle_on, velocity, flags)
+            deadline = time.monotonic() + wait
+            while True:
+                message = self.receive(max(deadline - time.monotonic(), 0.0))
+                if message is None:
+                    self.counters["timeouts"] += 1
+                    raise TimeoutError(f"no reply to packet {seq} within {wait:g} s")
+                result = SessionRules.answer_to(message, seq)
+                if result is not None:
+                    break
+            if isinstance(result, Result):
                 return result
+        raise ServerError(result.error, seq)

@@ -4,6 +4,12 @@ The bricks of a bone changed since a version, with their remaining density, so a
 update its own copy or mesh of the bone. The format (fields, byte layout, order, paging, how
 to apply it) is documented in ``burrforce.server.bone.deltas``, which builds the messages;
 this module is the part both sides share.
+
+Bone generations: every message carries ``generation``, the number of the bone it is of
+(new on each load, reset or restore, since bone versions then restart at 0). A client keeps
+(generation, version) and asks with both; when its generation is not the bone's any more
+the answer is ``full``: set the whole copy to 0 (reallocated to ``grid_shape``), apply the
+bricks, keep the new generation and go on from ``next_since`` as usual.
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ from .messages import (
     TAG_BYTES,
     TOO_BIG,
     VERSION,
+    VERSION_1,
     Notice,
     Pose,
     Reply,
@@ -58,14 +59,18 @@ class ProtocolError(Exception):
         detail: what is wrong, for logs and tests.
         header: (session, seq, t_client_us) when the datagram's header could be read, else
             None (then no notice can be addressed).
+        version: the datagram's version for BAD_VERSION (a v1 datagram is answered in v1's
+            shape), else None.
     """
 
     def __init__(self, code: int, detail: str,
-                 header: tuple[int, int, int] | None = None) -> None:
+                 header: tuple[int, int, int] | None = None,
+                 version: int | None = None) -> None:
         super().__init__(detail)
         self.code = code
         self.detail = detail
         self.header = header
+        self.version = version
 
 
 # -- helpers ------------------------------------------------------------------------------------
@@ -163,7 +168,7 @@ def encode_pose(pose: Pose, tagger: Tagger | None = None) -> bytes:
          _floats(pose.position, 3, "position"), _floats(pose.orientation, 4, "orientation"),
          float(pose.rpm), bool(pose.spindle_on),
          None if pose.velocity is None else _floats(pose.velocity, 3, "velocity"),
-         pose.flags), tagger)
+         pose.flags, pose.stream), tagger)
 
 
 def decode_pose(data: bytes) -> Pose:
@@ -184,14 +189,15 @@ def decode_pose(data: bytes) -> Pose:
         except Exception:
             msg = None
         if type(msg) is list and len(msg) == POSE_FIELDS:
-            version, kind, session, seq, t_client, p, q, rpm, on, velocity, flags, tag = msg
+            (version, kind, session, seq, t_client, p, q, rpm, on, velocity, flags, stream,
+             tag) = msg
             if (type(version) is int and version == VERSION and type(kind) is int
                     and kind == POSE and type(session) is int and 0 <= session < _UINT32
                     and type(seq) is int and 0 <= seq < _UINT32 and type(t_client) is int
                     and 0 <= t_client <= MAX_TIMESTAMP_US and type(p) is list and len(p) == 3
                     and type(q) is list and len(q) == 4 and type(rpm) is float
                     and type(on) is bool and velocity is None and type(flags) is int
-                    and 0 <= flags < _UINT32
+                    and 0 <= flags < _UINT32 and type(stream) is int and 0 <= stream < _UINT32
                     and (tag is None or (type(tag) is bytes and len(tag) == TAG_BYTES))):
                 px, py, pz = p
                 qx, qy, qz, qw = q
@@ -199,7 +205,7 @@ def decode_pose(data: bytes) -> Pose:
                         and type(qx) is float and type(qy) is float and type(qz) is float
                         and type(qw) is float):
                     return Pose(session, seq, t_client, (px, py, pz), (qx, qy, qz, qw), rpm,
-                                on, None, flags, tag)
+                                on, None, flags, stream, tag)
     return _decode_pose_checked(data)
 
 
@@ -209,14 +215,15 @@ def _decode_pose_checked(data: bytes) -> Pose:
     header = (session, seq, t_client)
     if version != VERSION:
         raise ProtocolError(BAD_VERSION, f"version {version}; this server speaks {VERSION}",
-                            header)
+                            header, version)
     if kind != POSE:
         raise ProtocolError(BAD_TYPE, f"message type {kind}; clients send {POSE} (POSE)",
                             header)
     if len(msg) != POSE_FIELDS:  # type: ignore[arg-type]
         raise ProtocolError(MALFORMED, f"a POSE has {POSE_FIELDS} elements, got "
                                        f"{len(msg)}", header)  # type: ignore[arg-type]
-    _, _, _, _, _, position, orientation, rpm, spindle_on, velocity, flags, tag = msg  # type: ignore[misc]
+    (_, _, _, _, _, position, orientation, rpm, spindle_on, velocity, flags, stream,
+     tag) = msg  # type: ignore[misc]
     position = _vec3(position)
     if position is None:
         raise ProtocolError(MALFORMED, "position must be an array of 3 numbers", header)
@@ -235,8 +242,10 @@ def _decode_pose_checked(data: bytes) -> Pose:
                                 header)
     if not _is_uint(flags, _UINT32):
         raise ProtocolError(MALFORMED, "flags must be an unsigned 32-bit integer", header)
+    if not _is_uint(stream, _UINT32):
+        raise ProtocolError(MALFORMED, "stream must be an unsigned 32-bit integer", header)
     return Pose(session, seq, t_client, position, orientation, float(rpm), spindle_on,
-                velocity, flags, _tag_field(tag, header))
+                velocity, flags, stream, _tag_field(tag, header))
 
 
 def check_pose_values(pose: Pose) -> str | None:
@@ -277,6 +286,18 @@ def encode_notice(notice: Notice, tagger: Tagger | None = None) -> bytes:
     return _pack_signed((VERSION, NOTICE, *notice[:-1]), tagger)
 
 
+def encode_notice_values(session: int, seq: int, t_client_us: int, error: int, stream: int,
+                         tagger: Tagger | None = None) -> bytes:
+    """:func:`encode_notice` from plain values (the server's path: no NamedTuple per packet)."""
+    return _pack_signed((VERSION, NOTICE, session, seq, t_client_us, error, stream), tagger)
+
+
+def encode_bad_version_v1(session: int, seq: int, t_client_us: int) -> bytes:
+    """The answer to a version-1 datagram: a BAD_VERSION notice in v1's own shape
+    ``[1, 3, session, seq, t_client_us, 3, nil]``, so a v1 client can say "update me"."""
+    return _pack((VERSION_1, NOTICE, session, seq, t_client_us, BAD_VERSION, None))
+
+
 def decode_server_message(data: bytes) -> Reply | Notice:
     """Parse a REPLY or NOTICE (the client's side). Floats come back as Python floats.
 
@@ -288,12 +309,14 @@ def decode_server_message(data: bytes) -> Reply | Notice:
     header = (session, seq, t_client)
     if version != VERSION:
         raise ProtocolError(BAD_VERSION, f"version {version}; this client speaks {VERSION}",
-                            header)
+                            header, version)
     if kind == NOTICE:
-        if len(msg) != NOTICE_FIELDS or not _is_uint(msg[5], 1 << 16):  # type: ignore[arg-type,index]
-            raise ProtocolError(MALFORMED, "a NOTICE is [1, 3, session, seq, t_client_us, "
-                                           "error, tag]", header)
-        return Notice(session, seq, t_client, msg[5], _tag_field(msg[6], header))  # type: ignore[index]
+        if (len(msg) != NOTICE_FIELDS or not _is_uint(msg[5], 1 << 16)  # type: ignore[arg-type,index]
+                or not _is_uint(msg[6], _UINT32)):  # type: ignore[index]
+            raise ProtocolError(MALFORMED, "a NOTICE is [2, 3, session, seq, t_client_us, "
+                                           "error, stream, tag]", header)
+        return Notice(session, seq, t_client, msg[5], msg[6],  # type: ignore[index]
+                      _tag_field(msg[7], header))  # type: ignore[index]
     if kind != REPLY:
         raise ProtocolError(BAD_TYPE, f"message type {kind}; servers send 2 or 3", header)
     if len(msg) != REPLY_FIELDS:  # type: ignore[arg-type]

@@ -13,7 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAGIC = b"BFMC"
-FORMAT_VERSION = 1
+#: The newest format: version 2 adds the bone generation after version 1's header. A server
+#: answers version 1 unless the client asks for 2 (``format_version=2``), so readers that know
+#: only 1 keep working.
+FORMAT_VERSION = 2
+FORMAT_VERSIONS = (1, 2)
 MEDIA_TYPE = "application/vnd.burrforce.mesh-chunks"
 
 FLAG_MORE = 1
@@ -26,7 +30,14 @@ FLAG_SESSION_FRAME = 8
 HEADER = struct.Struct("<4sHHIIQQII")
 #: chunk index (a, b, c), vertex_count, triangle_count.
 CHUNK_HEAD = struct.Struct("<3iII")
+#: Version 2's header is version 1's followed by the bone generation (u64).
+GENERATION = struct.Struct("<Q")
 assert HEADER.size == 40 and CHUNK_HEAD.size == 20
+
+
+def header_size(format_version: int) -> int:
+    """The header's size, bytes: 40 (version 1) or 48 (version 2)."""
+    return HEADER.size + (GENERATION.size if format_version >= 2 else 0)
 
 
 @dataclass
@@ -59,7 +70,10 @@ class Chunk:
 
 @dataclass
 class MeshMessage:
-    """A decoded message: header fields and its chunks."""
+    """A decoded message: header fields and its chunks.
+
+    ``generation``: the bone generation the chunks are of; None in a version 1 message
+    (:func:`encode` writes version 2 exactly when it is set)."""
 
     session: int
     chunk_cells: int
@@ -68,6 +82,11 @@ class MeshMessage:
     flags: int
     next_cursor: int = 0
     chunks: list[Chunk] = field(default_factory=list)
+    generation: int | None = None
+
+    @property
+    def format_version(self) -> int:
+        return 1 if self.generation is None else 2
 
     @property
     def more(self) -> bool:
@@ -84,9 +103,12 @@ def _pad(vertex_count: int) -> int:
 
 
 def encode(m: MeshMessage) -> bytes:
-    """``m`` as one message (header, then each chunk)."""
-    parts = [HEADER.pack(MAGIC, FORMAT_VERSION, m.flags, m.session, m.chunk_cells,
+    """``m`` as one message (header, then each chunk): version 2 when ``m.generation`` is
+    set, else version 1."""
+    parts = [HEADER.pack(MAGIC, m.format_version, m.flags, m.session, m.chunk_cells,
                          m.bone_version, m.since, m.next_cursor, len(m.chunks))]
+    if m.generation is not None:
+        parts.append(GENERATION.pack(m.generation))
     for c in m.chunks:
         v, t = len(c.positions), len(c.triangles)
         parts.append(CHUNK_HEAD.pack(*c.index, v, t))
@@ -112,11 +134,16 @@ def decode(data: bytes) -> MeshMessage:
         HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ValueError(f"not a mesh-chunk message (magic {magic!r})")
-    if version != FORMAT_VERSION:
+    if version not in FORMAT_VERSIONS:
         raise ValueError(f"mesh-chunk format_version {version} is not supported (this reader "
-                         f"knows {FORMAT_VERSION})")
+                         f"knows {', '.join(map(str, FORMAT_VERSIONS))})")
     out = MeshMessage(session, cells, bone_version, since, flags, cursor)
-    at = HEADER.size
+    at = header_size(version)
+    if len(data) < at:
+        raise ValueError(f"a version {version} mesh-chunk message is at least {at} bytes, "
+                         f"got {len(data)}")
+    if version >= 2:
+        (out.generation,) = GENERATION.unpack_from(data, HEADER.size)
     for _ in range(count):
         if len(data) - at < CHUNK_HEAD.size:
             raise ValueError("the message ends inside a chunk header")

@@ -10,7 +10,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 #: Protocol version this codec speaks.
-VERSION = 1
+VERSION = 2
+#: The previous version: only ever answered with a BAD_VERSION notice in its own shape.
+VERSION_1 = 1
 
 # Message types (element 1).
 POSE = 1  #: client → server: the burr's pose and spindle state.
@@ -18,12 +20,12 @@ REPLY = 2  #: server → client: the force and everything else of one tick.
 NOTICE = 3  #: server → client: a short error notice (the request was not processed).
 
 # Request flags (bit mask, element 10 of a POSE). Receivers ignore bits they do not know.
+# Bit 2 (v1's FLAG_NEW_STREAM) is reserved again: streams are handed out by the server.
 FLAG_RESET_VELOCITY = 1  #: do not estimate velocity from the previous pose (a teleport).
 FLAG_NO_CARVE = 2  #: evaluate the force but remove no bone.
-#: this packet starts a new stream: accept its sequence number whatever came before, if its
-#: timestamp is later than the last accepted one (a client sets it on every packet until its
-#: first reply arrives).
-FLAG_NEW_STREAM = 4
+
+#: A POSE whose stream (element 11) is this asks for a stream ("hello"); it is not ticked.
+HELLO_STREAM = 0
 
 # Reply status flags (bit mask).
 STATUS_CUTTING = 1  #: the burr removes bone this tick (spindle at cutting speed, feeding in).
@@ -56,6 +58,10 @@ BAD_VALUE = 7  #: well-formed and authentic, but a value is unusable (NaN, zero 
 STALE = 8  #: older than a packet already accepted (never answered).
 DUPLICATE = 9  #: the same sequence number again (never answered).
 INTERNAL = 10  #: the server failed on this packet (a bug: please report it).
+#: (notice) a stream is open for you: put the notice's stream in element 11 of your POSEs.
+NEW_STREAM = 11
+#: (notice) the POSE's stream is not (or no longer) open: send a hello (stream 0).
+WRONG_STREAM = 12
 
 ERROR_NAMES = {
     OK: "ok",
@@ -69,9 +75,11 @@ ERROR_NAMES = {
     STALE: "stale",
     DUPLICATE: "duplicate",
     INTERNAL: "internal",
+    NEW_STREAM: "new_stream",
+    WRONG_STREAM: "wrong_stream",
 }
 
-#: Requests longer than this are dropped unread (a POSE is ~110 bytes).
+#: Requests longer than this are dropped unread (a POSE is ~115 bytes).
 MAX_REQUEST_BYTES = 512
 #: Replies are at most this long (a REPLY is ~300 bytes): a receive buffer this size is enough.
 MAX_REPLY_BYTES = 1024
@@ -83,9 +91,11 @@ SEQ_MODULUS = 1 << 32
 MAX_TIMESTAMP_US = (1 << 63) - 1
 
 # Element counts (the tag included).
-POSE_FIELDS = 12
+POSE_FIELDS = 13
 REPLY_FIELDS = 24
-NOTICE_FIELDS = 7
+NOTICE_FIELDS = 8
+#: A v1 NOTICE (the BAD_VERSION answer to a v1 datagram): [1, 3, session, seq, t, error, tag].
+NOTICE_V1_FIELDS = 7
 
 
 class Pose(NamedTuple):
@@ -103,6 +113,8 @@ class Pose(NamedTuple):
         velocity: the burr centre's velocity (x, y, z), engine length unit per second, or None
             to let the server estimate it from positions and client timestamps.
         flags: FLAG_* bits.
+        stream: the stream number the server gave this client (unsigned 32-bit), or
+            HELLO_STREAM (0) to ask for one (the pose is then not ticked).
         tag: the 16-byte tag, or None for a session without a key.
     """
 
@@ -115,6 +127,7 @@ class Pose(NamedTuple):
     spindle_on: bool
     velocity: tuple[float, float, float] | None = None
     flags: int = 0
+    stream: int = HELLO_STREAM
     tag: bytes | None = None
 
 
@@ -175,15 +188,19 @@ class Notice(NamedTuple):
     Attributes:
         session, seq, t_client_us: echoed from the request.
         error: an error code (``ERROR_NAMES``).
-        tag: tagged with the session's key for BAD_TAG notices (the session is known);
-            None for notices sent before a session was identified (malformed, wrong version
-            or type, unknown session).
+        stream: for NEW_STREAM the stream the client is to use; for WRONG_STREAM the stream
+            the refused POSE carried; 0 in every other notice.
+        tag: tagged with the session's key for BAD_TAG, NEW_STREAM and WRONG_STREAM notices
+            (the session is known; None for a session without a key); None for notices sent
+            before a session was identified (malformed, wrong version or type, unknown
+            session).
     """
 
     session: int
     seq: int
     t_client_us: int
     error: int
+    stream: int = 0
     tag: bytes | None = None
 
     @property

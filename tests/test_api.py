@@ -14,7 +14,6 @@ import pytest
 from burrforce.client import BurrClient
 from burrforce.proto.bricks import decode_delta
 from burrforce.proto.messages import (
-    FLAG_NEW_STREAM,
     STATUS_CLAMPED,
     STATUS_CUTTING,
     UNKNOWN_SESSION,
@@ -61,7 +60,7 @@ def _groove(stack, s: dict, y_mm: float, ticks: int = 150, rpm: float = 60_000,
     """Feed along +x at y, 0.5 mm deep in the workpiece; the replies."""
     with BurrClient(*stack.udp_address, session=s["id"], key=s.get("key"),
                     timeout_s=2.0) as c:
-        out = [c.exchange((2.0, y_mm, z_mm), rpm=rpm, velocity=FEED, flags=FLAG_NEW_STREAM)]
+        out = [c.exchange((2.0, y_mm, z_mm), rpm=rpm, velocity=FEED)]
         out += [c.exchange((2.0 + 0.003 * k, y_mm, z_mm), rpm=rpm, velocity=FEED)
                 for k in range(1, ticks)]
     return [r.reply for r in out]
@@ -233,7 +232,7 @@ def test_frame_change_applies_to_the_stream(stack, api):
     # Unreal: left-handed Z-up centimetres, x forward, y right. The workpiece's (2, -y, 1.5)
     # mm is (0.2, y/10, 0.15) cm with y flipped.
     with BurrClient(*stack.udp_address, session=s["id"], key=s["key"], timeout_s=2.0) as c:
-        c.exchange((0.2, 0.0, 0.15), rpm=60_000, velocity=(0.3, 0, 0), flags=FLAG_NEW_STREAM)
+        c.exchange((0.2, 0.0, 0.15), rpm=60_000, velocity=(0.3, 0, 0))
         reply = [c.exchange((0.2 + 0.0003 * k, 0.0, 0.15), rpm=60_000, velocity=(0.3, 0, 0))
                  for k in range(1, 60)][-1].reply
     assert reply.status & STATUS_CUTTING
@@ -446,6 +445,113 @@ def test_deltas_answer_while_a_client_streams(stack, api):
     api.delete(f"/sessions/{s['id']}")
 
 
+def _npy(api, sid: int, what: str = "remaining") -> tuple[np.ndarray, dict]:
+    import io
+
+    r = api.get(f"/sessions/{sid}/export/volume", params={"format": "npy", "what": what})
+    assert r.status_code == 200, r.text
+    return np.load(io.BytesIO(r.content)), r.headers
+
+
+def _brick_copy(api, sid: int, copy: np.ndarray, since, generation, max_bricks=4096):
+    """A client bringing its copy up to the bone with deltas (every page)."""
+    from burrforce.server.bone.deltas import apply_delta
+
+    first = None
+    for _ in range(100):
+        params = {"max_bricks": max_bricks}
+        params.update({k: v for k, v in (("since", since), ("generation", generation))
+                       if v is not None})
+        r = api.get(f"/sessions/{sid}/deltas", params=params)
+        assert r.status_code == 200, r.text
+        d = decode_delta(r.content)
+        first = first or d
+        if d["full"] and tuple(d["grid_shape"]) != copy.shape:
+            copy = np.zeros(d["grid_shape"], np.uint8)
+        since, generation = apply_delta(copy, d), d["generation"]
+        assert since is not None
+        if d["complete"]:
+            return copy, since, generation, first
+    pytest.fail("paging did not finish")
+
+
+def test_a_replaced_bone_has_a_new_generation_and_old_copies_get_full_deltas(stack, api):
+    s = _session(api)
+    sid = s["id"]
+    generation = s["bone"]["generation"]
+    assert isinstance(generation, int) and generation > 0
+    _groove(stack, s, 0.0, 150)
+    copy, _ = _npy(api, sid)
+    copy, version, generation, d = _brick_copy(api, sid, copy * 0, None, generation)
+    assert d["full"] and version > 0
+    np.testing.assert_array_equal(copy, _npy(api, sid)[0])
+    snap = api.post(f"/sessions/{sid}/snapshot", json={"name": f"gen-{sid}"})
+    assert snap.status_code == 201, snap.text
+    with np.load(stack.plane.roots.snapshots / f"gen-{sid}.bone.npz") as z:
+        meta = json.loads(z["meta"].tobytes().decode())
+    assert (meta["generation"], meta["bone_version"]) == (generation, version)
+    seen = {generation}
+    for how, replace in (
+            ("reset", lambda: api.post(f"/sessions/{sid}/reset")),
+            ("load", lambda: api.put(f"/sessions/{sid}/bone",
+                                     json={"source": "library:block.bone.npz"})),
+            ("restore", lambda: api.post(f"/sessions/{sid}/restore",
+                                         json={"snapshot": f"gen-{sid}"}))):
+        r = replace()
+        assert r.status_code in (200, 202), (how, r.text)
+        new = api.get(f"/sessions/{sid}").json()["bone"]["generation"]
+        assert new not in seen, how
+        seen.add(new)
+        if how != "restore":
+            _groove(stack, s, 3.0, 150)  # carve the new bone past the old copy, or not
+        # The old (generation, version) pair: a full answer that makes the old copy exact.
+        copy, version, generation, d = _brick_copy(api, sid, copy, version, generation,
+                                                   max_bricks=1 << 16)
+        assert d["full"] and d["generation"] == generation == new, how
+        now, headers = _npy(api, sid)
+        np.testing.assert_array_equal(copy, now, err_msg=how)
+        assert headers["x-burrforce-bone-generation"] == str(new)
+        assert headers["x-burrforce-bone-version"] == str(version)
+        # The current pair: an ordinary (empty) delta.
+        d = decode_delta(api.get(f"/sessions/{sid}/deltas", params={
+            "since": version, "generation": generation}).content)
+        assert not d["full"] and d["count"] == 0
+    # NRRD exports name their generation in the file.
+    r = api.get(f"/sessions/{sid}/export/volume", params={"format": "nrrd"})
+    assert f"burrforce_bone_generation:={generation}\n".encode() in r.content[:2000]
+    # Without a generation a client gets what it always did.
+    r = api.get(f"/sessions/{sid}/deltas", params={"since": 10**9})
+    assert r.status_code == 422 and "newer than the bone" in r.text
+    assert api.get(f"/sessions/{sid}/deltas", params={"generation": -1}).status_code == 422
+    api.delete(f"/sessions/{sid}")
+
+
+def test_a_bone_export_loads_back_with_its_materials(stack, api):
+    s = _session(api, bone={"source": "phantom:layered", "voxel_mm": VOXEL_MM})
+    sid = s["id"]
+    assert api.patch(f"/sessions/{sid}/materials/2",
+                     json={"us_n_mm2": 300.0, "forbidden": True}).status_code == 200
+    _groove(stack, s, 0.0, 150, z_mm=1.0)
+    r = api.get(f"/sessions/{sid}/export/volume", params={"format": "bone"})
+    assert r.status_code == 200, r.text
+    assert r.headers["x-burrforce-bone-generation"] == str(s["bone"]["generation"])
+    up = api.post("/uploads", params={"filename": "carved.bone.npz"}, content=r.content)
+    assert up.status_code == 201, up.text
+    t = _session(api, bone={"source": up.json()["source"]})
+    assert t["bone"]["generation"] != s["bone"]["generation"]
+    labels, _ = _npy(api, sid, "labels")
+    assert set(np.unique(labels).tolist()) >= {1, 2}
+    np.testing.assert_array_equal(_npy(api, t["id"], "labels")[0], labels)
+    np.testing.assert_array_equal(_npy(api, t["id"])[0], _npy(api, sid)[0])  # the carving
+    assert _npy(api, sid)[0].sum() < _npy(api, sid, "density")[0].sum()
+    assert api.get(f"/sessions/{t['id']}/materials").json() == \
+        api.get(f"/sessions/{sid}/materials").json()
+    bad = api.get(f"/sessions/{sid}/export/volume", params={"format": "bone", "what": "labels"})
+    assert bad.status_code == 422 and "leave what out" in bad.text
+    api.delete(f"/sessions/{sid}")
+    api.delete(f"/sessions/{t['id']}")
+
+
 # -- haptic output ----------------------------------------------------------------------------
 def test_a_device_profile_turns_on_the_coupled_output(stack, api):
     """A device profile makes the output coupled: the reply carries the coupling model and
@@ -486,4 +592,40 @@ def test_a_device_profile_turns_on_the_coupled_output(stack, api):
     assert bad.status_code == 422 and "device_limits" in bad.text
     assert api.patch(f"/sessions/{sid}/parameters",
                      json={"device": "phantom-omni"}).status_code == 422
+    api.delete(f"/sessions/{sid}")
+
+
+def test_restart_stream_over_rest_ends_the_stream_and_the_client_says_hello(stack, api):
+    """POST restart-stream ends the stream: the client's next POSE gets WRONG_STREAM, its
+    exchange says hello and goes on in a new stream (one call for the user); a datagram of
+    the old stream replayed afterwards is refused, never ticked."""
+    import socket
+
+    from burrforce.proto.codec import decode_server_message
+    from burrforce.proto.messages import WRONG_STREAM
+
+    s = _session(api)
+    sid = s["id"]
+    with BurrClient(*stack.udp_address, session=sid, key=s["key"], timeout_s=2.0) as c:
+        c.exchange((2.0, 0.0, 1.5), rpm=60_000, velocity=FEED)
+        old = c.rules.stream
+        old_pose = c.rules.datagram((2.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True,
+                                    FEED, 0, None)[1]  # captured, never sent
+        assert api.post(f"/sessions/{sid}/restart-stream").status_code == 204
+        r = c.exchange((2.003, 0.0, 1.5), rpm=60_000, velocity=FEED)
+        assert r.reply.error == 0 and c.rules.stream not in (0, old)
+        assert (c.counters["wrong_stream"], c.counters["streams"], c.counters["hellos"]) == (
+            1, 2, 2)
+    state = api.get(f"/sessions/{sid}/state").json()
+    assert state["stream"] == c.rules.stream and state["wrong_stream"] == 1
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as replay:
+        replay.connect(stack.udp_address)
+        replay.settimeout(2.0)
+        replay.send(old_pose)
+        notice = decode_server_message(replay.recv(2048))
+    assert (notice.error, notice.stream) == (WRONG_STREAM, old)
+    after = api.get(f"/sessions/{sid}/state").json()
+    assert (after["bone_version"], after["accepted"]) == (state["bone_version"],
+                                                          state["accepted"])
+    assert after["wrong_stream"] == 2
     api.delete(f"/sessions/{sid}")

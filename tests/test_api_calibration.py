@@ -13,7 +13,7 @@ from burrforce.client import BurrClient
 from burrforce.client.connection import Connection
 from burrforce.client.connection import write as write_connection
 from burrforce.client.rest import BurrRest, RestError
-from burrforce.proto.messages import FLAG_NEW_STREAM, STATUS_CUTTING
+from burrforce.proto.messages import STATUS_CUTTING
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.stack import ServerStack
 from burrforce.server.calib.design import Sensitivities
@@ -51,8 +51,7 @@ def _steady_force(stack, s: dict, y_mm: float) -> float:
     """|F| over the last 50 of 150 packets of a 0.5 mm deep groove along +x."""
     with BurrClient(*stack.udp_address, session=s["id"], key=s.get("key"),
                     timeout_s=2.0) as c:
-        out = [c.exchange((2.0, y_mm, 1.5), rpm=60_000, velocity=(3.0, 0.0, 0.0),
-                          flags=FLAG_NEW_STREAM)]
+        out = [c.exchange((2.0, y_mm, 1.5), rpm=60_000, velocity=(3.0, 0.0, 0.0))]
         out += [c.exchange((2.0 + 0.003 * k, y_mm, 1.5), rpm=60_000, velocity=(3.0, 0.0, 0.0))
                 for k in range(1, 150)]
     tail = [r.reply for r in out[-50:]]

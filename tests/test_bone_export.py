@@ -4,6 +4,7 @@ deltas for game engines."""
 from __future__ import annotations
 
 import io
+import json
 import math
 import struct
 
@@ -23,6 +24,7 @@ from burrforce.server.bone import (
     ShaftParams,
     load_bone,
     phantom,
+    save_bone,
     workpiece_block,
 )
 from burrforce.server.bone import export as export_module
@@ -572,3 +574,104 @@ def test_original_density_plus_delta_since_zero_is_the_bone():
     copy = grid.density.copy()
     apply_delta(copy, brick_delta(grid, 0))
     np.testing.assert_array_equal(copy, grid.remaining_density())
+
+
+# -- bone generations ------------------------------------------------------------------------
+def _follow(grid: BoneGrid, copy: np.ndarray, since, generation, bone_generation: int,
+            max_bricks: int = 4096):
+    """A client bringing ``copy`` (of bone ``generation`` at ``since``) up to ``grid`` over
+    the wire, every page: (copy, version, generation) it ends at."""
+    for _ in range(100):
+        d = decode_delta(encode_delta(brick_delta(grid, since, max_bricks, bone_generation,
+                                                  generation)))
+        assert d["generation"] == bone_generation
+        if tuple(d["grid_shape"]) != copy.shape:
+            assert d["full"]  # another grid is another bone
+            copy = np.zeros(d["grid_shape"], np.uint8)
+        since, generation = apply_delta(copy, d), d["generation"]
+        assert since is not None, "no reload expected here"
+        if d["complete"]:
+            return copy, since, generation
+    pytest.fail("paging did not finish")
+
+
+@settings(max_examples=15, deadline=None)
+@given(old_cut=st.integers(2, 8), new_cut=st.integers(1, 12), max_bricks=st.integers(200, 600))
+def test_a_copy_of_another_generation_is_answered_in_full(old_cut, new_cut, max_bricks):
+    # The engine's copy is of the old bone at version v; the bone is replaced (versions restart
+    # at 0) and carved elsewhere, possibly past v: "since v" would be a wrong delta.
+    old = small_block()
+    carve_groove(old, (1.0, 1.0, 0.8), (6.0, 1.0, 0.8), n=old_cut)
+    copy, since = old.remaining_density(), old.version
+    new = small_block()
+    carve_groove(new, (1.0, 4.0, 0.5), (6.0, 4.0, 0.5), n=new_cut)
+    copy, version, generation = _follow(new, copy, since, 7, 8, max_bricks)
+    assert (version, generation) == (new.version, 8)
+    np.testing.assert_array_equal(copy, new.remaining_density())
+    # Then an ordinary delta of the new generation.
+    engine = engine_for(new)
+    engine.step((3.0, 2.0, 0.5), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), RPM)
+    d = brick_delta(new, version, 4096, 8, generation)
+    assert not d["full"] and d["since_version"] == version
+    apply_delta(copy, d)
+    np.testing.assert_array_equal(copy, new.remaining_density())
+
+
+def test_full_answers_without_since_and_on_another_grid():
+    grid = edge_grid((27, 22, 17))
+    carve_groove(grid, (3.0, 2.5, 3.5), (4.0, 2.5, 3.5), n=3)
+    d = brick_delta(grid, None, generation=5)
+    assert d["full"] and d["since_version"] is None and d["complete"]
+    with_bone = {tuple(b) for b in np.argwhere(export_module_bricks(grid)).tolist()}
+    sent = {tuple(b) for b in np.frombuffer(d["bricks"], "<i4").reshape(-1, 3).tolist()}
+    assert sent == with_bone
+    # A copy of another bone with another shape: reallocated, then exact.
+    copy, version, generation = _follow(grid, np.full((8, 8, 8), 200, np.uint8), 3, 4, 5)
+    np.testing.assert_array_equal(copy, grid.remaining_density())
+    assert (version, generation) == (grid.version, 5)
+    # A generation the bone does not know (None) cannot vouch for a copy: full too.
+    assert brick_delta(grid, 0, client_generation=5)["full"]
+    # The same generation with a version the bone never had is still refused.
+    with pytest.raises(ValueError, match="newer than the bone"):
+        brick_delta(grid, grid.version + 1, generation=5, client_generation=5)
+    # But another generation takes any version: it is of the other bone.
+    assert brick_delta(grid, grid.version + 100, generation=5, client_generation=4)["full"]
+    # Too many never-carved bricks for one page: reload, as for one tick too many.
+    d = brick_delta(grid, None, max_bricks=1, generation=5)
+    assert d["full"] and d["reload"] and d["count"] == 0 and d["next_since"] is None
+
+
+def export_module_bricks(grid: BoneGrid) -> np.ndarray:
+    """Bricks with any original density, the brute-force way."""
+    from burrforce.server.bone.bricks import BRICK, brick_shape
+
+    out = np.zeros(brick_shape(grid.shape), bool)
+    for i, j, k in np.argwhere(grid.density > 0):
+        out[i // BRICK, j // BRICK, k // BRICK] = True
+    return out
+
+
+def test_bricks_with_bone_matches_brute_force():
+    from burrforce.server.bone.deltas import bricks_with_bone
+
+    for grid in (edge_grid((21, 19, 13)), small_block(), edge_grid((8, 9, 1))):
+        np.testing.assert_array_equal(bricks_with_bone(grid.density),
+                                      export_module_bricks(grid))
+
+
+def test_nrrd_and_bone_files_name_their_generation(tmp_path):
+    bone = phantom("workpiece", 0.5)
+    carve_groove(bone.grid, (1.0, 0.0, 1.5), (3.0, 0.0, 1.5), n=3)
+    path = tmp_path / "v.nrrd"
+    with open(path, "wb") as f:
+        write_volume(bone.grid, f, "nrrd", generation=41)
+    _, header = nrrd.read(str(path))
+    assert header["burrforce_bone_generation"] == "41"
+    assert header["burrforce_bone_version"] == str(bone.grid.version)
+    assert b"generation" not in export_module.nrrd_header(bone.grid, "remaining", True)
+    saved = save_bone(bone, tmp_path / "b", generation=41)
+    with np.load(saved) as z:
+        meta = json.loads(z["meta"].tobytes().decode())
+    assert meta["generation"] == 41 and meta["bone_version"] == bone.grid.version > 0
+    back = load_bone(saved)
+    assert back.grid.version == bone.grid.version

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from burrforce.proto.codec import decode_server_message, encode_pose
 from burrforce.proto.messages import (
     BAD_VALUE,
-    FLAG_NEW_STREAM,
     OK,
     STATUS_CLAMPED,
     STATUS_CONTACT,
@@ -117,6 +116,8 @@ class Rig:
     def __init__(self, haptics: HapticsConfig, **config) -> None:
         self.session = Session(1, BoneEngine(workpiece_block(0.1)),
                                SessionConfig(frame="si_mm", haptics=haptics, **config))
+        self.session.hello()  # the stream handshake, done directly: nothing ticked
+        self.session.commit()
         self.dispatcher = Dispatcher()
         self.dispatcher.add(self.session)
         self.seq = 0
@@ -125,8 +126,8 @@ class Rig:
     def send(self, position, rpm=60_000.0, on=True, dt_us=1000, flags=0):
         self.seq += 1
         self.t_us += dt_us
-        pose = Pose(1, self.seq, self.t_us, tuple(position), TILT, rpm, on, None,
-                    flags | (FLAG_NEW_STREAM if self.seq == 1 else 0))
+        pose = Pose(1, self.seq, self.t_us, tuple(position), TILT, rpm, on, None, flags,
+                    self.session.stream)
         return decode_server_message(self.dispatcher.handle(encode_pose(pose),
                                                             10**12 + self.t_us * 1000))
 

@@ -11,13 +11,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from burrforce.proto import frames
-from burrforce.proto.codec import decode_server_message, encode_pose
+from burrforce.proto.codec import (
+    ProtocolError,
+    decode_pose,
+    decode_server_message,
+    encode_notice,
+    encode_pose,
+)
 from burrforce.proto.messages import (
     BAD_TAG,
     BAD_VALUE,
-    FLAG_NEW_STREAM,
+    BAD_VERSION,
     FLAG_RESET_VELOCITY,
     INTERNAL,
+    NEW_STREAM,
     NOTICE_FIELDS,
     OK,
     STATUS_CONTACT,
@@ -25,6 +32,7 @@ from burrforce.proto.messages import (
     STATUS_SLOW_SPINDLE,
     STATUS_STALE,
     UNKNOWN_SESSION,
+    WRONG_STREAM,
     Notice,
     Pose,
     Reply,
@@ -33,13 +41,18 @@ from burrforce.proto.tag import Tagger
 from burrforce.server.bone import BoneEngine, workpiece_block
 from burrforce.server.hotloop import Dispatcher, Session, SessionConfig
 from burrforce.server.hotloop.dispatch import NOTICE_BURST
+from burrforce.server.hotloop.session import STREAM_NOTICE_BURST
 from burrforce.server.model import CuttingModel, CuttingParams
 from burrforce.server.model.cases import CuttingCase
+
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
 
 KEY = bytes(range(32))
 TAGGER = Tagger(KEY)
 T0_NS = 10**12
 ALPHA_DEG = 60.0
+#: The stream make()'s sessions have open (their first offer).
+STREAM = 0xC0FFEE
 
 
 def tilted(alpha_deg: float = ALPHA_DEG) -> tuple[float, float, float, float]:
@@ -49,9 +62,15 @@ def tilted(alpha_deg: float = ALPHA_DEG) -> tuple[float, float, float, float]:
 
 
 def make(voxel_mm: float = 0.25, frame: str = "si_mm", key: bytes | None = KEY,
-         **config) -> tuple[Dispatcher, Session]:
+         open_stream: bool = True, **config) -> tuple[Dispatcher, Session]:
+    """A dispatcher with session 1; with ``open_stream`` its stream STREAM is open (the
+    handshake done through the session's own calls, nothing ticked)."""
     grid = workpiece_block(voxel_mm)
-    session = Session(1, BoneEngine(grid), SessionConfig(frame=frame, **config), key)
+    session = Session(1, BoneEngine(grid), SessionConfig(frame=frame, **config), key,
+                      next_stream=STREAM)
+    if open_stream:
+        assert session.hello() == STREAM
+        session.commit()
     d = Dispatcher()
     d.add(session)
     return d, session
@@ -59,10 +78,10 @@ def make(voxel_mm: float = 0.25, frame: str = "si_mm", key: bytes | None = KEY,
 
 def send(d: Dispatcher, seq: int, position, *, t_us: int | None = None, key=KEY,
          orientation=(0.0, 0.0, 0.0, 1.0), rpm=60_000.0, on=True, velocity=None, flags=0,
-         now_ns: int | None = None, session: int = 1):
+         now_ns: int | None = None, session: int = 1, stream: int = STREAM):
     t_us = seq * 1000 if t_us is None else t_us
     pose = Pose(session, seq, t_us, tuple(position), tuple(orientation), rpm, on, velocity,
-                flags)
+                flags, stream)
     data = encode_pose(pose, Tagger(key) if key is not None else None)
     out = d.handle(data, T0_NS + t_us * 1000 if now_ns is None else now_ns)
     return None if out is None else decode_server_message(out)
@@ -79,7 +98,7 @@ def groove(d: Dispatcher, n: int, frame: frames.Frame, depth_mm=0.5, feed_mm_s=3
     replies = []
     for k in range(1, n + 1):
         p = tf.point_out((x0 + feed_mm_s * k * 1e-3, 0.0, 2.0 - depth_mm))
-        replies.append(send(d, k, p, orientation=q, flags=FLAG_NEW_STREAM if k == 1 else 0))
+        replies.append(send(d, k, p, orientation=q))
     return replies
 
 
@@ -175,26 +194,154 @@ def test_sequence_numbers_wrap_around():
     assert d.counters["stale"] == 1
 
 
-def test_a_new_stream_starts_with_the_flag_or_after_idling():
-    d, s = make(idle_restart_s=0.5)
-    assert send(d, 1000, (5.0, 0.0, 30.0)) is not None
-    assert send(d, 1, (5.0, 0.0, 30.0), t_us=1_001_000) is None  # stale: same stream
-    assert send(d, 2, (5.0, 0.0, 30.0), t_us=1_002_000, flags=FLAG_NEW_STREAM) is not None
-    assert send(d, 3, (5.0, 0.0, 30.0), t_us=1_003_000) is not None
-    # 0.6 s later (server clock): any sequence number starts a new stream.
-    assert send(d, 1, (5.0, 0.0, 30.0), t_us=1_603_000) is not None
-    assert s.counters["restarts"] == 2
+def test_hello_is_answered_with_the_offer_and_never_ticked():
+    d, s = make(open_stream=False)
+    for seq in (1, 2, 3):  # idempotent: the same offer until it is used
+        n = send(d, seq, (5.0, 0.0, 1.5), stream=0)
+        assert isinstance(n, Notice) and (n.error, n.stream, n.seq) == (NEW_STREAM, STREAM, seq)
+        assert n.tag is not None and encode_notice_of(n)[-16:] == n.tag
+    assert s.counters["accepted"] == 0 and s.engine.grid.version == 0 and s.last_seq is None
+    assert (s.stream, s.offer, s.counters["hellos"]) == (0, STREAM, 3)
+    # The first POSE of the offered stream commits it: any seq, a normal reply, STALE.
+    r = send(d, 2, (5.0, 0.0, 1.5), stream=STREAM)
+    assert isinstance(r, Reply) and r.status & STATUS_STALE
+    assert (s.stream, s.offer, s.counters["streams"]) == (STREAM, 0, 1)
+    assert isinstance(send(d, 3, (5.003, 0.0, 1.5)), Reply)
+    assert send(d, 3, (5.003, 0.0, 1.5)) is None  # v1 sequencing within the stream
+    assert d.counters["new_stream"] == 3 and d.counters["replied"] == 2
 
 
-def test_a_replayed_new_stream_datagram_is_stale_by_its_clock():
+def encode_notice_of(n: Notice) -> bytes:
+    """``n`` encoded again with the test key: verifies if and only if ``n.tag`` is right."""
+    return encode_notice(n, TAGGER)
+
+
+def test_a_hello_never_disturbs_the_open_stream_and_numbers_are_never_reused():
     d, s = make()
-    captured = encode_pose(Pose(1, 5, 5_000, (5.0, 0.0, 30.0), (0.0, 0.0, 0.0, 1.0), 0.0, True,
-                                None, FLAG_NEW_STREAM), TAGGER)
-    assert d.handle(captured, T0_NS + 5_000_000) is not None
-    for k in range(6, 50):
-        assert send(d, k, (5.0, 0.0, 30.0)) is not None
-    assert d.handle(captured, T0_NS + 50_000_000) is None  # replayed within the stream
-    assert s.counters["restarts"] == 0 and d.counters["stale"] == 1
+    assert send(d, 10, (5.0, 0.0, 30.0)) is not None
+    n = send(d, 11, (5.0, 0.0, 30.0), stream=0)  # a replayed hello, say
+    assert (n.error, n.stream) == (NEW_STREAM, STREAM + 1)
+    assert isinstance(send(d, 12, (5.0, 0.0, 30.0)), Reply)  # the stream goes on
+    assert s.stream == STREAM and s.last_seq == 12
+    # The client's own restart: hello, commit the new offer; the old stream is over.
+    assert isinstance(send(d, 1, (5.0, 0.0, 30.0), stream=STREAM + 1), Reply)
+    n = send(d, 13, (5.0, 0.0, 30.0), stream=STREAM)
+    assert (n.error, n.stream) == (WRONG_STREAM, STREAM) and encode_notice_of(n)[-16:] == n.tag
+    assert send(d, 0, (5.0, 0.0, 30.0), stream=0).stream == STREAM + 2
+    assert s.counters["wrong_stream"] == 1 and d.counters["wrong_stream"] == 1
+
+
+def test_end_stream_makes_the_client_say_hello_again():
+    d, s = make()
+    captured = [encode_pose(Pose(1, k, k * 1000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0),
+                                 60_000.0, True, None, 0, STREAM), TAGGER) for k in (1, 2)]
+    assert all(isinstance(decode_server_message(d.handle(c, T0_NS)), Reply) for c in captured)
+    s.end_stream()
+    assert (s.stream, s.offer) == (0, 0)
+    for c in captured:
+        n = decode_server_message(d.handle(c, T0_NS + 2 * 10**9))
+        assert (n.error, n.stream) == (WRONG_STREAM, STREAM)
+    assert send(d, 3, (5.0, 0.0, 1.5), stream=0).stream == STREAM + 1
+    assert isinstance(send(d, 4, (5.0, 0.0, 1.5), stream=STREAM + 1), Reply)
+    assert s.counters["accepted"] == 3
+
+
+def test_replays_after_idle_are_never_answered():
+    """v1 restarted an idle stream (replays accepted); v2 streams never reopen by themselves."""
+    d, s = make()
+    captured = [encode_pose(Pose(1, k, k * 1000, (5.0 + 0.003 * k, 0.0, 1.5),
+                                 (0.0, 0.0, 0.0, 1.0), 60_000.0, True, None, 0, STREAM),
+                            TAGGER) for k in range(1, 30)]
+    for c in captured:
+        assert d.handle(c, T0_NS) is not None
+    version = s.engine.grid.version
+    for c in captured:
+        assert d.handle(c, T0_NS + 5 * 10**9) is None  # 5 s later
+    assert s.engine.grid.version == version and s.counters["accepted"] == len(captured)
+
+
+def test_stream_notices_have_a_bucket_per_session():
+    d, s = make(open_stream=False)
+    # A flood of junk empties the server-wide bucket; the handshake still gets through.
+    junk = encode_pose(Pose(77, 1, 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, False))
+    while d.handle(junk, T0_NS) is not None:
+        pass
+    assert send(d, 1, (5.0, 0.0, 1.5), stream=0, now_ns=T0_NS).error == NEW_STREAM
+    answered = 1 + sum(send(d, 2, (5.0, 0.0, 1.5), stream=0, now_ns=T0_NS) is not None
+                       for _ in range(100))
+    assert answered == STREAM_NOTICE_BURST
+    # 10 ms later the bucket holds one token again (100/s).
+    assert send(d, 3, (5.0, 0.0, 1.5), stream=0, now_ns=T0_NS + 10**7) is not None
+    assert s.counters["hellos"] == 102 and s.offer == STREAM
+
+
+def test_a_v1_datagram_gets_a_bad_version_notice_in_v1_shape():
+    d, _ = make()
+    v1 = msgpack.packb([1, 1, 1, 5, 5000, [5.0, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0], 60_000.0,
+                        True, None, 4, None])
+    out = d.handle(v1, T0_NS)
+    assert msgpack.unpackb(out) == [1, 3, 1, 5, 5000, BAD_VERSION, None]
+    with pytest.raises(ProtocolError) as info:
+        decode_server_message(out)
+    assert info.value.code == BAD_VERSION and info.value.header == (1, 5, 5000)
+    later = msgpack.packb([3, 1, 1, 6, 6000, "anything", None, None])
+    n = decode_server_message(d.handle(later, T0_NS))
+    assert (n.error, n.stream, n.tag) == (BAD_VERSION, 0, None)
+    assert d.counters["bad_version"] == 2
+
+
+_ACTIONS = st.lists(st.sampled_from(["hello", "commit", "current", "old", "replay", "end",
+                                     "junk"]), max_size=60)
+
+
+@settings(max_examples=60, deadline=None)
+@given(actions=_ACTIONS)
+def test_only_poses_of_the_committed_stream_are_ever_ticked(actions):
+    """Random interleavings of hellos, commits, POSEs of old and current streams, replays
+    and REST restarts: a POSE is ticked (answered with a REPLY) only if its stream is the one
+    open after it arrived, committed from an offer the server made; stream numbers never
+    repeat."""
+    d, s = _SHARED_STREAMS
+    s.end_stream()
+    offers: list[int] = []  # every stream the server offered, in order
+    opened: list[int] = []
+    captured: list[bytes] = []
+    seq = s.last_seq or 0
+    for action in actions:
+        seq += 1
+        if action == "end":
+            s.end_stream()
+            continue
+        stream = {"hello": 0, "commit": offers[-1] if offers else 0,
+                  "current": s.stream, "old": opened[-2] if len(opened) > 1 else 1,
+                  "junk": (seq * 2654435761) % (1 << 32) or 1}.get(action, 0)
+        if action == "replay" and captured:
+            data = captured[seq % len(captured)]
+        else:
+            data = encode_pose(Pose(1, seq, seq * 1000, (5.0, 0.0, 30.0), (0.0, 0.0, 0.0, 1.0),
+                                    0.0, False, None, 0, stream), TAGGER)
+            captured.append(data)
+        sent = decode_pose(data).stream
+        before = (s.stream, s.offer, s.counters["accepted"])
+        out = d.handle(data, T0_NS + seq * 10**9)  # a second apart: no bucket limits
+        m = None if out is None else decode_server_message(out)
+        if isinstance(m, Reply):
+            assert sent != 0 and sent in before[:2] and sent == s.stream
+            assert s.counters["accepted"] == before[2] + 1
+            if sent == before[1]:
+                assert sent not in opened
+                opened.append(sent)
+        else:
+            assert s.counters["accepted"] == before[2]
+            if isinstance(m, Notice) and m.error == NEW_STREAM:
+                assert m.stream not in opened and m.stream != 0
+                if not offers or offers[-1] != m.stream:
+                    assert m.stream not in offers
+                    offers.append(m.stream)
+    assert len(set(opened)) == len(opened)
+
+
+_SHARED_STREAMS = make(open_stream=False)
 
 
 # -- velocity from client timestamps -----------------------------------------------------------
@@ -233,7 +380,8 @@ def test_velocity_comes_from_client_timestamps_and_resets_on_gaps():
 # -- authentication and bad input ---------------------------------------------------------------
 def test_forged_and_foreign_datagrams_cannot_drive_a_session():
     d, s = make()
-    good = encode_pose(Pose(1, 5, 5000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True),
+    good = encode_pose(Pose(1, 5, 5000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True,
+                            stream=STREAM),
                        TAGGER)
     for bad in (
         encode_pose(Pose(1, 5, 5000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True)),
@@ -255,7 +403,7 @@ def test_unknown_session_gets_an_untagged_notice_and_tiny_datagrams_none():
     notice = send(d, 1, (0.0, 0.0, 0.0), session=99)
     assert isinstance(notice, Notice) and notice.error == UNKNOWN_SESSION
     assert notice.tag is None
-    tiny = msgpack.packb([1, 1, 99, 1, 0])  # a readable header, shorter than any notice
+    tiny = msgpack.packb([2, 1, 99, 1, 0])  # a readable header, shorter than any notice
     assert d.handle(tiny, T0_NS) is None
     assert d.handle(b"\x00garbage", T0_NS) is None
     assert d.handle(b"x" * 2000, T0_NS) is None
@@ -265,11 +413,16 @@ def test_unknown_session_gets_an_untagged_notice_and_tiny_datagrams_none():
 
 def test_notices_never_outgrow_the_datagram_they_answer():
     d, _ = make()
-    header = [1, 1, 7, 123456, 10**15]
-    for extra in range(0, NOTICE_FIELDS + 8):
-        data = msgpack.packb([*header, *([0] * extra)])
-        out = d.handle(data, T0_NS + extra * 10**9)
-        assert out is None or len(out) <= len(data)
+    for version in (1, 2, 3):
+        header = [version, 1, 7, 123456, 10**15]
+        for extra in range(0, NOTICE_FIELDS + 8):
+            data = msgpack.packb([*header, *([0] * extra)])
+            out = d.handle(data, T0_NS + (version * 100 + extra) * 10**9)
+            assert out is None or len(out) <= len(data)
+    # A hello on a session without a key: its notice is shorter than the hello too.
+    d, _ = make(key=None, open_stream=False)
+    hello = encode_pose(Pose(1, 1, 1, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, False))
+    assert len(d.handle(hello, T0_NS)) <= len(hello)
 
 
 def test_notices_are_rate_limited():
@@ -324,8 +477,8 @@ def _mutations(data: bytes):
     )
 
 
-_VALID = encode_pose(Pose(1, 7, 7000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True),
-                     TAGGER)
+_VALID = encode_pose(Pose(1, 7, 7000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_000.0, True,
+                          stream=STREAM), TAGGER)
 _SHARED = make()
 
 
@@ -334,7 +487,9 @@ _SHARED = make()
 def test_handle_never_raises(data):
     d, _ = _SHARED
     out = d.handle(data, T0_NS)
-    if out is not None:
+    if out is not None and out[1:2] == b"\x01":  # the v1 answer to a v1 datagram
+        assert msgpack.unpackb(out)[:2] == [1, 3] and msgpack.unpackb(out)[5] == BAD_VERSION
+    elif out is not None:
         assert isinstance(decode_server_message(out), (Reply, Notice))
 
 
@@ -349,3 +504,65 @@ def test_snapshot_summarizes_tick_times_and_counts():
     assert 0.0 < stats["tick_p50_us"] <= stats["tick_p99_us"]
     assert "tick_times_us" not in stats
     assert stats["removed_mm3"]["cortical"] > 0.0
+
+
+def test_warm_up_runs_every_path_and_leaves_the_session_as_given():
+    d, s = make(open_stream=False)
+    d.warm_up()
+    assert (s.stream, s.offer, s.next_stream, s.last_seq) == (0, 0, STREAM, None)
+    assert all(v == 0 for v in s.counters.values()) and s.ticks_timed == 0
+    assert all(v == 0 for v in d.counters.values())
+    assert send(d, 1, (5.0, 0.0, 30.0), stream=0).stream == STREAM
+
+
+def test_accepted_says_whether_a_session_took_the_last_datagram():
+    """What the loop gives a socket of its own for: only a POSE admitted in the open stream,
+    never a hello, a refused stream, a replay or junk."""
+    d, _ = make()
+    assert send(d, 5, (5.0, 0.0, 30.0)) is not None and d.accepted
+    for seq, stream in ((5, STREAM), (4, STREAM), (6, 0), (7, STREAM + 9)):
+        send(d, seq, (5.0, 0.0, 30.0), stream=stream)
+        assert not d.accepted, (seq, stream)
+    d.handle(b"junk", T0_NS)
+    assert not d.accepted
+
+
+def test_client_rules_follow_only_verified_handshake_notices_that_match():
+    """SessionRules (every Python client's handshake) against a real dispatcher: it adopts a
+    NEW_STREAM that answers its own hello, ignores forged, foreign or late ones, and goes
+    back to hello only on a verified WRONG_STREAM about its own stream."""
+    from burrforce.client.udp import SessionRules
+    from burrforce.proto.codec import encode_notice_values
+
+    d, s = make(open_stream=False)
+    rules = SessionRules(1, KEY, 100)
+
+    def exchange(t_ns: int):
+        _, data = rules.datagram((5.0, 0.0, 30.0), (0.0, 0.0, 0.0, 1.0), 0.0, False, None, 0,
+                                 t_ns // 1000)
+        out = d.handle(data, t_ns)
+        return None if out is None else rules.accept(out, t_ns // 1000)
+
+    forged = encode_notice_values(1, 100, 1, NEW_STREAM, 666, Tagger(b"attacker"))
+    assert rules.accept(forged, 1) is None and rules.counters["bad_tag"] == 1
+    assert exchange(T0_NS).error == NEW_STREAM and rules.stream == STREAM  # hello, adopted
+    late = encode_notice_values(1, 100, 1, NEW_STREAM, 777, TAGGER)  # an old hello's answer
+    rules.accept(late, 1)
+    assert rules.stream == STREAM
+    assert isinstance(exchange(T0_NS + 10**6).reply, Reply) and s.stream == STREAM
+    other = encode_notice_values(1, 102, 1, WRONG_STREAM, STREAM + 5, TAGGER)
+    rules.accept(other, 1)  # about another stream: nothing changes
+    unverified = encode_notice_values(1, 102, 1, WRONG_STREAM, STREAM)
+    assert rules.accept(unverified, 1) is None and rules.stream == STREAM
+    s.end_stream()
+    n = exchange(T0_NS + 2 * 10**6)
+    assert n.error == WRONG_STREAM and rules.stream == 0
+    assert exchange(T0_NS + 3 * 10**6).stream == STREAM + 1 and rules.stream == STREAM + 1
+    assert (rules.counters["hellos"], rules.counters["streams"],
+            rules.counters["wrong_stream"]) == (2, 2, 1)
+    # Unkeyed sessions: nothing to verify, the same handshake.
+    d2, _ = make(key=None, open_stream=False)
+    open_rules = SessionRules(1, None, 1)
+    _, hello = open_rules.datagram((5.0, 0.0, 30.0), IDENTITY, 0.0, False, None, 0, 1)
+    open_rules.accept(d2.handle(hello, T0_NS), 1)
+    assert open_rules.stream == STREAM

@@ -6,21 +6,36 @@ from __future__ import annotations
 import asyncio
 import math
 import random
+import select
 import socket
+import threading
 import time
 
 import msgpack
 import pytest
 
-from burrforce.client import AsyncBurrClient, BurrClient, ServerError, line, stream
+from burrforce.client import (
+    AsyncBurrClient,
+    BurrClient,
+    ServerError,
+    ServerGone,
+    Waypoint,
+    line,
+    stream,
+)
 from burrforce.proto.codec import decode_server_message, encode_pose
 from burrforce.proto.messages import (
     BAD_TAG,
-    FLAG_NEW_STREAM,
+    ERROR_NAMES,
+    NEW_STREAM,
+    OK,
     STATUS_CUTTING,
+    STATUS_STALE,
     UNKNOWN_SESSION,
+    WRONG_STREAM,
     Notice,
     Pose,
+    Reply,
 )
 from burrforce.proto.tag import Tagger
 from burrforce.server.hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
@@ -76,7 +91,8 @@ def test_asyncio_client(server):
 
     replies, counters = asyncio.run(run())
     assert replies[-1].reply.status & STATUS_CUTTING
-    assert counters["bad_tag"] == 0 and counters["received"] == 100
+    assert counters["bad_tag"] == 0 and counters["received"] == 101  # the hello's answer too
+    assert counters["hellos"] == 1 and counters["streams"] == 1
 
 
 def test_streaming_a_trajectory_at_1khz(server):
@@ -98,11 +114,13 @@ def test_streaming_a_trajectory_at_1khz(server):
 def _corpus(rng: random.Random, tagger: Tagger, n: int):
     """Random and mutated datagrams, the attacks of the issue included."""
     valid = encode_pose(Pose(KEYED, 10, 10_000, ON_BONE, (0.0, 0.0, 0.0, 1.0), 60_000.0,
-                             True), tagger)
+                             True, stream=rng.choice((0, 0x5EED))), tagger)
     fixed = [
         b"", b"\xc1", b"\x91" * 500, b"\xdd\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff",
         msgpack.packb([1, 1, KEYED, 1, 1, [math.nan] * 3, [0.0, 0.0, 0.0, 1.0], 1.0, True,
                        None, 0, None]),
+        msgpack.packb([2, 1, KEYED, 1, 1, [math.nan] * 3, [0.0, 0.0, 0.0, 1.0], 1.0, True,
+                       None, 0, 0x5EED, None]),
         msgpack.packb([2, 1, KEYED, 1, 1]), msgpack.packb([1, 9, KEYED, 1, 1] + [0] * 7),
         msgpack.packb({"version": 1}), msgpack.packb("x" * 400), bytes(600),
         msgpack.packb([1, 1, KEYED, 1, 1, [1e308] * 3, [0.0] * 4, 1.0, True, [1.0] * 3, 0,
@@ -123,7 +141,8 @@ def _corpus(rng: random.Random, tagger: Tagger, n: int):
             pose = Pose(rng.choice((KEYED, OPEN, 7)), rng.randrange(1 << 32),
                         rng.randrange(1 << 40),
                         (rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(-50, 50)),
-                        (0.0, 0.0, 0.0, 1.0), rng.uniform(-1e5, 1e5), rng.random() < 0.5)
+                        (0.0, 0.0, 0.0, 1.0), rng.uniform(-1e5, 1e5), rng.random() < 0.5,
+                        stream=rng.randrange(1 << 32))
             yield encode_pose(pose, Tagger(b"attacker"))
 
 
@@ -170,9 +189,9 @@ def test_fuzz_100k_datagrams_against_the_live_server(server):
     delta = {k: after[k] - before[k] for k in after}
     assert sent == n
     assert delta["received"] == n
-    rejected = sum(v for k, v in delta.items()
-                   if k not in ("received", "replied", "noticed", "notices_suppressed",
-                                "send_errors"))
+    # One reason per datagram not ticked normally (hellos count as new_stream); the socket
+    # loop's own counters (peers, deferrals) are not reasons.
+    rejected = sum(delta[name] for code, name in ERROR_NAMES.items() if code != OK)
     # Every datagram was answered with a reply, or rejected under exactly one reason.
     assert delta["replied"] + rejected - delta["bad_value"] == n
     assert delta["internal"] == 0
@@ -180,14 +199,15 @@ def test_fuzz_100k_datagrams_against_the_live_server(server):
     # The server is alive and right: a real client still cuts.
     assert server.is_alive()
     with BurrClient(*server.address, session=KEYED, key=KEY, timeout_s=2.0) as c:
-        c.exchange((20.0, 4.0, 1.5), rpm=60_000, flags=FLAG_NEW_STREAM)
+        c.exchange((20.0, 4.0, 1.5), rpm=60_000)
         r = [c.exchange((20.0 + 0.003 * k, 4.0, 1.5), rpm=60_000) for k in range(1, 50)]
     assert r[-1].reply.error == 0 and r[-1].reply.status & STATUS_CUTTING
 
 
 def test_sessions_are_added_restarted_and_removed_while_the_loop_runs(server):
     """The commands the control plane will use: a new session answers at once (warmed, its
-    bone's voxel size reported), a stream restart forgets the sequence, removal ends it."""
+    bone's voxel size reported), a stream restart ends the stream (the client says hello and
+    gets another), removal ends the session."""
     info = server.call("add_session", spec=SessionSpec(9, "phantom:workpiece", 0.5, KEY))
     assert info == {"voxel_mm": 0.5}
     with pytest.raises(RuntimeError, match="session 9 exists"):
@@ -197,25 +217,41 @@ def test_sessions_are_added_restarted_and_removed_while_the_loop_runs(server):
     sock.connect(server.address)
     sock.settimeout(2.0)
 
-    def pose(seq: int) -> bytes:
+    def pose(seq: int, stream: int) -> bytes:
         return encode_pose(Pose(9, seq, time.monotonic_ns() // 1000, (5.0, 0.0, 30.0),
-                                (0.0, 0.0, 0.0, 1.0), 0.0, False), tagger)
+                                (0.0, 0.0, 0.0, 1.0), 0.0, False, stream=stream), tagger)
+
+    def hello(seq: int) -> int:
+        sock.send(pose(seq, 0))
+        data = sock.recv(2048)
+        notice = decode_server_message(data)
+        assert (notice.error, notice.seq) == (NEW_STREAM, seq) and tagger.verify(data)
+        return notice.stream
 
     try:
-        sock.send(pose(100))
-        assert decode_server_message(sock.recv(2048)).seq == 100
-        sock.send(pose(5))  # stale: never answered
+        first = hello(99)
+        assert server.stats()["sessions"][9]["next_stream"] == ((first + 1) % (1 << 32) or 1)
+        sock.send(pose(100, first))
+        assert isinstance(decode_server_message(sock.recv(2048)), Reply)
+        sock.send(pose(5, first))  # stale: never answered
         with pytest.raises(TimeoutError):
             sock.settimeout(0.2)
             sock.recv(2048)
         server.call("restart_stream", session_id=9)
         sock.settimeout(2.0)
-        sock.send(pose(5))  # a new stream accepts any sequence number
+        sock.send(pose(101, first))  # the stream is over
+        notice = decode_server_message(sock.recv(2048))
+        assert (notice.error, notice.stream) == (WRONG_STREAM, first)
+        second = hello(102)
+        assert second != first
+        sock.send(pose(5, second))  # a new stream accepts any sequence number
         assert decode_server_message(sock.recv(2048)).seq == 5
-        assert server.stats()["sessions"][9]["stale"] == 1
+        stats = server.stats()["sessions"][9]
+        assert stats["stale"] == 1 and stats["stream"] == second
+        assert (stats["hellos"], stats["streams"], stats["wrong_stream"]) == (2, 2, 1)
         assert server.call("remove_session", session_id=9) is True
         assert server.call("remove_session", session_id=9) is False
-        sock.send(pose(6))
+        sock.send(pose(6, second))
         notice = decode_server_message(sock.recv(2048))
         assert isinstance(notice, Notice) and notice.error == UNKNOWN_SESSION
     finally:
@@ -238,3 +274,265 @@ def test_a_bad_bone_fails_the_start_with_its_reason(tmp_path):
     with pytest.raises(RuntimeError, match=r"no\.nrrd"):
         hot.start()
     assert not hot.is_alive()
+
+
+# -- v2 streams: the issue's replay attacks on a real loop --------------------------------------
+class Tap:
+    """A UDP relay on 127.0.0.1 between one client and the hot loop that keeps a copy of
+    every datagram the client sends: what an attacker on the path captures."""
+
+    def __init__(self, server_address: tuple[str, int]) -> None:
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back.connect(server_address)
+        self.address = self.front.getsockname()
+        self.captured: list[bytes] = []
+        self._client: tuple[str, int] | None = None
+        self._stop = False
+        self._thread = threading.Thread(target=self._relay, daemon=True)
+        self._thread.start()
+
+    def _relay(self) -> None:
+        while not self._stop:
+            ready, _, _ = select.select((self.front, self.back), (), (), 0.05)
+            for sock in ready:
+                try:
+                    data, source = sock.recvfrom(4096)
+                except OSError:
+                    continue
+                if sock is self.front:
+                    self._client = source
+                    self.captured.append(data)
+                    self.back.send(data)
+                elif self._client is not None:
+                    self.front.sendto(data, self._client)
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(5.0)
+        self.front.close()
+        self.back.close()
+
+
+def _capture_keyed_stream(address: tuple[str, int], session: int, n: int) -> list[bytes]:
+    """The datagrams of a real client's keyed stream (hello, commit, n − 1 more POSEs
+    cutting), captured on their way to the loop."""
+    tap = Tap(address)
+    try:
+        with BurrClient(*tap.address, session=session, key=KEY, timeout_s=2.0) as c:
+            for k in range(n):
+                assert c.exchange((14.0 + 0.003 * k, -2.0, 1.5), rpm=60_000).reply.error == 0
+            assert c.counters["hellos"] == 1 and c.counters["streams"] == 1
+    finally:
+        tap.close()
+    assert len(tap.captured) == n + 1  # the hello, then the n POSEs of the stream
+    return tap.captured
+
+
+def _replay(hot: HotLoopProcess, datagrams: list[bytes]) -> list[object]:
+    """Send ``datagrams`` from a fresh socket, wait until the loop has counted every one;
+    every answer that came back (decoded)."""
+    before = hot.stats()["counters"]["received"]
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.connect(hot.address)
+    answers = []
+    try:
+        for data in datagrams:
+            sock.send(data)
+        for _ in range(1000):  # bounded: the loop takes microseconds per datagram
+            if hot.stats()["counters"]["received"] - before >= len(datagrams):
+                break
+            time.sleep(0.01)
+        sock.settimeout(0.2)  # answers are sent before the next datagram is read
+        while True:
+            try:
+                answers.append(decode_server_message(sock.recv(2048)))
+            except TimeoutError:
+                return answers
+    finally:
+        sock.close()
+
+
+def _assert_not_ticked(answers: list[object], stats_before: dict, stats_after: dict) -> None:
+    assert not any(isinstance(a, Reply) for a in answers), answers
+    assert stats_after["bone_version"] == stats_before["bone_version"]
+    assert stats_after["accepted"] == stats_before["accepted"]
+
+
+def test_replays_after_idle_and_after_restart_stream_are_never_answered(server):
+    """The issue's fault, replayed on a real loop: a captured keyed stream sent again after
+    more than a second of idle (v1 restarted the stream and cut with it), then again after a
+    REST restart-stream: never a REPLY, never a tick."""
+    captured = _capture_keyed_stream(server.address, KEYED, 40)
+    time.sleep(1.2)  # past v1's idle restart
+    before = server.stats()["sessions"][KEYED]
+    answers = _replay(server, captured)
+    after = server.stats()["sessions"][KEYED]
+    _assert_not_ticked(answers, before, after)
+    assert after["stale"] + after["duplicate"] - before["stale"] - before["duplicate"] == 40
+    assert [a.error for a in answers] == [NEW_STREAM]  # the hello: a notice, nothing ticked
+    server.call("restart_stream", session_id=KEYED)
+    answers = _replay(server, captured)
+    final = server.stats()["sessions"][KEYED]
+    _assert_not_ticked(answers, after, final)
+    assert {a.error for a in answers} <= {NEW_STREAM, WRONG_STREAM}
+    assert final["wrong_stream"] - after["wrong_stream"] == 40 and final["stream"] == 0
+
+
+def test_a_flood_of_replayed_hellos_never_disturbs_a_live_stream(server):
+    captured = _capture_keyed_stream(server.address, KEYED, 3)
+    hello = captured[0]
+    flood = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    flood.connect(server.address)
+    try:
+        with BurrClient(*server.address, session=KEYED, key=KEY, timeout_s=2.0) as c:
+            # The client's own velocity: no stamps to go stale on a busy machine.
+            first = c.exchange((22.0, -4.0, 1.5), rpm=60_000, velocity=(3.0, 0.0, 0.0))
+            stream_no = c.rules.stream
+            replies = [first]
+            for k in range(1, 60):
+                for _ in range(20):
+                    flood.send(hello)
+                replies.append(c.exchange((22.0 + 0.003 * k, -4.0, 1.5), rpm=60_000,
+                                          velocity=(3.0, 0.0, 0.0)))
+            assert c.rules.stream == stream_no and c.counters["streams"] == 1
+            assert c.counters["wrong_stream"] == 0 and c.counters["timeouts"] == 0
+    finally:
+        flood.close()
+    assert all(r.reply.error == 0 for r in replies)
+    assert not any(r.reply.status & STATUS_STALE for r in replies)
+    assert replies[-1].reply.status & STATUS_CUTTING
+
+
+def _closed_udp_port() -> int:
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    return port
+
+
+def test_server_gone_is_one_clear_error_in_send_receive_and_exchange():
+    port = _closed_udp_port()
+    with BurrClient("127.0.0.1", port, session=1, timeout_s=2.0) as c:
+        c.send((0.0, 0.0, 0.0))  # the datagram leaves; the "port unreachable" comes back
+        with pytest.raises(ServerGone) as err:
+            c.receive()
+        assert isinstance(err.value, ConnectionError) and (err.value.host, err.value.port) == (
+            "127.0.0.1", port)
+        assert "burrforce serve" in str(err.value) and "/v1/health" in str(err.value)
+        c.send((0.0, 0.0, 0.0))
+        select.select((c.sock,), (), (), 2.0)  # readable once the ICMP error is pending
+        with pytest.raises(ServerGone):
+            c.send((0.0, 0.0, 0.0))
+        with pytest.raises(ServerGone):
+            c.exchange((0.0, 0.0, 0.0))
+
+
+def test_async_client_reports_server_gone():
+    port = _closed_udp_port()
+
+    async def run() -> None:
+        c = await AsyncBurrClient.connect("127.0.0.1", port, session=1, timeout_s=2.0)
+        try:
+            with pytest.raises(ServerGone):
+                await c.exchange((0.0, 0.0, 0.0))
+            c.send((0.0, 0.0, 0.0))
+            with pytest.raises(ServerGone):
+                await c.receive()
+            assert c.counters["icmp_errors"] == 2
+        finally:
+            c.close()
+
+    asyncio.run(run())
+
+
+def _loop_config(port: int, next_stream: int | None = None) -> HotLoopConfig:
+    return HotLoopConfig(udp_port=port, sessions=(
+        SessionSpec(KEYED, "phantom:workpiece", 0.5, KEY, next_stream=next_stream),))
+
+
+def test_a_restarted_loop_never_answers_the_old_streams_replays():
+    """(c) of the issue: the loop restarted on the same port, its session's streams numbered
+    from the old stream + 65536 (what the control plane journals): the captured stream is
+    refused (WRONG_STREAM), never ticked; a client just says hello and cuts."""
+    with HotLoopProcess(_loop_config(0)) as old:
+        captured = _capture_keyed_stream(old.address, KEYED, 20)
+        last = old.stats()["sessions"][KEYED]["stream"]
+        port = old.address[1]
+    base = (last + 65536) % (1 << 32) or 1
+    with HotLoopProcess(_loop_config(port, base)) as new:
+        before = new.stats()["sessions"][KEYED]
+        assert before["next_stream"] == base
+        answers = _replay(new, captured)
+        after = new.stats()["sessions"][KEYED]
+        _assert_not_ticked(answers, before, after)
+        assert after["wrong_stream"] == 20 and after["stream"] == 0
+        with BurrClient(*new.address, session=KEYED, key=KEY, timeout_s=2.0) as c:
+            r = [c.exchange((10.0 + 0.003 * k, 2.0, 1.5), rpm=60_000) for k in range(30)]
+            assert c.rules.stream == base
+        assert r[0].reply.status & STATUS_STALE and r[-1].reply.status & STATUS_CUTTING
+
+
+def test_a_loop_offers_the_next_stream_its_spec_gives():
+    with HotLoopProcess(_loop_config(0, 0xFFFF_FFFF)) as hot:
+        assert hot.stats()["sessions"][KEYED]["next_stream"] == 0xFFFF_FFFF
+        with BurrClient(*hot.address, session=KEYED, key=KEY, timeout_s=2.0) as c:
+            c.exchange((5.0, 0.0, 30.0))
+            assert c.rules.stream == 0xFFFF_FFFF
+        assert hot.stats()["sessions"][KEYED]["next_stream"] == 1  # wraps, skipping 0
+
+
+def test_stream_survives_the_server_stopping_and_starting_mid_trajectory():
+    """stream() keeps its schedule through an outage: it counts the outage, says so once
+    each way, and when the loop is back (on the same port) the client says hello again: the
+    first reply is STALE, then cutting resumes."""
+    hot = HotLoopProcess(_loop_config(0))
+    host, port = hot.start()
+    events: list[tuple[bool, int]] = []
+    replies_after: list[Reply] = []
+    first_results = threading.Event()
+    restarted = threading.Event()
+    state = {"hot": hot, "results": 0}
+
+    def on_result(i: int, result) -> None:
+        state["results"] += 1
+        if state["results"] == 300:
+            first_results.set()
+        if restarted.is_set() and events and not events[-1][0]:
+            replies_after.append(result.reply)
+
+    def restart() -> None:
+        first_results.wait(60.0)
+        state["hot"].stop()
+        state["hot"] = HotLoopProcess(_loop_config(port))
+        state["hot"].start()
+        restarted.set()
+
+    def waypoints():
+        """Round a 4 mm circle on the top face at 3 mm/s, 0.5 mm deep (never back into its
+        own groove within a lap: the restarted loop's fresh bone is cut at once), until 300
+        replies came after the outage (bounded: two minutes of waypoints)."""
+        for k in range(120_000):
+            if len(replies_after) >= 300:
+                return
+            a = 0.00075 * k
+            yield Waypoint((13.0 + 4.0 * math.cos(a), 4.0 * math.sin(a), 1.5), rpm=60_000.0)
+
+    mover = threading.Thread(target=restart, daemon=True)
+    mover.start()
+    try:
+        with BurrClient(host, port, session=KEYED, key=KEY, timeout_s=2.0) as c:
+            out = stream(c, waypoints(), 1000.0, on_result,
+                         on_outage=lambda gone, i: events.append((gone, i)))
+            counters = dict(c.counters)
+    finally:
+        mover.join(120.0)
+        state["hot"].stop()
+    assert out.outages == 1 and [gone for gone, _ in events] == [True, False]
+    assert events[0][1] < events[1][1] and out.outage_ticks == events[1][1] - events[0][1]
+    assert out.lost >= out.outage_ticks > 0
+    assert counters["wrong_stream"] == 1 and counters["streams"] == 2
+    assert replies_after[0].status & STATUS_STALE
+    assert all(r.status & STATUS_CUTTING for r in replies_after[100:])

@@ -23,6 +23,7 @@ from burrforce.proto.mesh_chunks import (
     FLAG_CW,
     FLAG_FULL,
     FLAG_SESSION_FRAME,
+    GENERATION,
     HEADER,
     MeshMessage,
     decode,
@@ -226,10 +227,58 @@ def test_header_and_flags(carved):
     assert flags == FLAG_FULL | FLAG_CW | FLAG_SESSION_FRAME and since == 0 and count > 0
 
 
+def test_version_2_carries_the_generation_after_version_1s_header(carved):
+    req = MeshRequest(7, 2, False)
+    v1 = encode(mesh_page(carved, req, None))
+    v2 = encode(mesh_page(carved, req, None, generation=(1 << 63) + 5))
+    assert HEADER.unpack_from(v1)[1] == 1 and HEADER.unpack_from(v2)[1] == 2
+    assert len(v2) == len(v1) + 8
+    assert v2[:4] + v2[6:40] == v1[:4] + v1[6:40] and v2[48:] == v1[40:]
+    assert GENERATION.unpack_from(v2, 40) == ((1 << 63) + 5,)
+    back = decode(v2)
+    assert back.generation == (1 << 63) + 5 and back.format_version == 2
+    assert decode(v1).generation is None
+    assert [c.index for c in back.chunks] == [c.index for c in decode(v1).chunks]
+
+
+def test_a_copy_of_another_generation_starts_over():
+    old = small_block(voxel_mm=0.25)
+    carve_groove(old, (1.0, 1.5, 0.8), (6.0, 1.5, 0.8))
+    req = MeshRequest(1, 1, False)
+    m = ChunkedMesh()
+    m.apply(decode(encode(mesh_page(old, req, None, 0, 64 << 20, generation=3))))
+    assert (m.have, m.generation) == (old.version, 3)
+    new = small_block(voxel_mm=0.25)  # the bone replaced: versions restart at 0
+    carve_groove(new, (1.0, 3.5, 0.8), (6.0, 3.5, 0.8), n=20)
+    assert new.version > m.have
+    # A server answers a copy of generation 3 in full (routes_mesh turns it into since=None).
+    page = decode(encode(mesh_page(new, req, None, 0, 64 << 20, generation=4)))
+    assert page.full
+    m.apply(page)
+    fresh = _copy(new, req)
+    assert (m.have, m.generation) == (new.version, 4)
+    assert m.chunks.keys() == fresh.chunks.keys()
+    # Changes of another bone without FULL (a bone replaced under a version 1 style request)
+    # leave a copy that cannot be trusted: the next update asks for everything.
+    stale = ChunkedMesh()
+    stale.apply(decode(encode(mesh_page(old, req, None, 0, 64 << 20, generation=3))))
+    stale.apply(decode(encode(mesh_page(new, req, stale.have, 0, 64 << 20, generation=4))))
+    assert stale.have is None and stale.generation is None
+    # Pages of one update from two bones: the same.
+    split = ChunkedMesh()
+    first = mesh_page(new, req, None, 0, MAX_BYTES_MIN, generation=4)
+    assert first.more
+    split.apply(decode(encode(first)))
+    split.apply(decode(encode(mesh_page(new, req, None, first.next_cursor, 64 << 20,
+                                        generation=5))))
+    assert split.have is None and split.generation is None
+
+
 @settings(max_examples=60, deadline=None)
 @given(cut=st.integers(0, 10_000), flip=st.integers(0, 10_000), value=st.integers(0, 255))
 def test_decode_rejects_damage_and_never_crashes(carved, cut, flip, value):
-    data = encode(mesh_page(carved, MeshRequest(1, 1, False), None, 0, MAX_BYTES_MIN))
+    data = encode(mesh_page(carved, MeshRequest(1, 1, False), None, 0, MAX_BYTES_MIN,
+                            generation=cut))
     truncated = data[:cut % len(data)]
     with pytest.raises(ValueError):
         decode(truncated)
@@ -246,7 +295,9 @@ def test_decode_checks_indices_and_counts():
     with pytest.raises(ValueError, match="magic"):
         decode(b"XXXX" + bytes(36))
     with pytest.raises(ValueError, match="format_version"):
-        decode(HEADER.pack(b"BFMC", 2, 0, 1, 8, 0, 0, 0, 0))
+        decode(HEADER.pack(b"BFMC", 3, 0, 1, 8, 0, 0, 0, 0))
+    with pytest.raises(ValueError, match="version 2 mesh-chunk message is at least 48"):
+        decode(HEADER.pack(b"BFMC", 2, 0, 1, 8, 0, 0, 0, 0) + bytes(7))
     with pytest.raises(ValueError, match="after the last chunk"):
         decode(encode(m) + b"\0")
     bad = HEADER.pack(b"BFMC", 1, 0, 1, 8, 0, 0, 0, 1) + CHUNK_HEAD.pack(0, 0, 0, 1, 1) \
@@ -379,3 +430,89 @@ def test_placement_beyond_a_poses_reach_is_refused(live):
     with pytest.raises(RestError) as err:
         api.set_parameters(s["id"], placement_position=[1e10, 0.0, 0.0])
     assert err.value.status == 422 and "placement_position" in str(err.value)
+
+
+def _full_sync(api, session: int, m: ChunkedMesh) -> list:
+    """sync_rest, returning the decoded pages too (to see FULL)."""
+    pages = []
+    original = api.mesh_chunks
+
+    def spy(*args, **kwargs):
+        data = original(*args, **kwargs)
+        pages.append(decode(data))
+        return data
+    api.mesh_chunks = spy
+    try:
+        sync_rest(api, session, m, winding="cw")
+    finally:
+        del api.mesh_chunks
+    return pages
+
+
+def test_rest_and_websocket_start_over_after_a_reset_and_a_load(live):
+    server, api, s = live
+    sid = s["id"]
+    m = ChunkedMesh()
+    _full_sync(api, sid, m)
+    generation = api.session(sid)["bone"]["generation"]
+    assert m.generation == generation and m.have is not None
+    _cut(server, s, -3.0)
+    _full_sync(api, sid, m)
+    old = (m.generation, m.have)
+    assert old[1] > 0
+    for replace in (lambda: api.reset(sid),
+                    lambda: api.load_bone(sid, "library:block.bone.npz")):
+        replace()
+        bone = api.session(sid)["bone"]
+        assert bone["generation"] not in (None, old[0])
+        _cut(server, s, 2.0)  # the new bone past the old copy's version, or not
+        # The old pair asked for by hand: FULL, and the new generation in the header.
+        page = decode(api.mesh_chunks(sid, since=old[1], generation=old[0],
+                                      format_version=2))
+        assert page.full and page.generation == bone["generation"]
+        pages = _full_sync(api, sid, m)
+        assert pages[0].full and m.generation == bone["generation"]
+        fresh = ChunkedMesh()
+        sync_rest(api, sid, fresh, winding="cw")
+        assert m.chunks.keys() == fresh.chunks.keys() and m.have == fresh.have
+        # The WebSocket, reopened with the old pair, starts over too.
+        stream = watch(server.url, server.token, sid, since=old[1], generation=old[0],
+                       winding="cw")
+        try:
+            first = next(stream)
+        finally:
+            stream.close()
+        assert first.full and first.generation == bone["generation"]
+        old = (m.generation, m.have)
+    # Version 1 clients are served as before (no generation in the header).
+    v1 = decode(api.mesh_chunks(sid))
+    assert v1.generation is None and v1.full
+    for bad in ({"format_version": 3}, {"generation": -1}):
+        with pytest.raises(RestError) as err:
+            api.mesh_chunks(sid, **bad)
+        assert err.value.status == 422
+
+
+def test_websocket_sends_the_new_generation_when_the_bone_is_replaced(live):
+    server, api, s = live
+    sid = s["id"]
+    stream = watch(server.url, server.token, sid, interval_ms=10)
+    try:
+        first = next(stream)
+        while first.more:
+            first = next(stream)
+        before = api.session(sid)["bone"]["generation"]
+        assert first.generation == before
+        api.reset(sid)
+        after = api.session(sid)["bone"]["generation"]
+        assert after != before
+        deadline = time.monotonic() + 20.0
+        while True:
+            assert time.monotonic() < deadline, "no update for the new bone"
+            m = next(stream)
+            if m.generation == after:
+                break
+            assert m.generation == before
+        assert m.full
+    finally:
+        stream.close()

@@ -21,7 +21,9 @@ from burrforce.proto.codec import (
     check_pose_values,
     decode_pose,
     decode_server_message,
+    encode_bad_version_v1,
     encode_notice,
+    encode_notice_values,
     encode_pose,
     encode_reply,
     read_header,
@@ -34,12 +36,15 @@ from burrforce.proto.messages import (
     MAX_REPLY_BYTES,
     MAX_REQUEST_BYTES,
     MAX_TIMESTAMP_US,
+    NEW_STREAM,
     NOTICE,
     POSE,
     REPLY,
     TAG_BYTES,
     TOO_BIG,
     VERSION,
+    VERSION_1,
+    WRONG_STREAM,
     Notice,
     Pose,
     Reply,
@@ -67,10 +72,18 @@ def canon(x: object) -> object:
     return (type(x).__name__, x)
 
 
+def wire_fields(vec: dict) -> list[str]:
+    """The field names of ``vec``'s message in wire order (a v1 NOTICE has no stream)."""
+    names = [f for f in CLASSES[vec["type"]]._fields if f != "tag"]
+    return [f for f in names if f != "stream"] if vec["version"] == VERSION_1 else names
+
+
 def message_from_fields(kind: str, fields: dict) -> Pose | Reply | Notice:
     cls = CLASSES[kind]
-    assert list(fields) == [f for f in cls._fields if f != "tag"], "fields in NamedTuple order"
     return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+
+
+V2_VECTORS = [v for v in VECTORS if v["version"] == VERSION]
 
 
 def encode_any(message: Pose | Reply | Notice, tagger: Tagger | None) -> bytes:
@@ -96,7 +109,11 @@ def vector_id(v: dict) -> str:
 # -- golden vectors -----------------------------------------------------------------------------
 def test_vectors_cover_the_required_cases():
     names = [v["name"] for v in VECTORS]
-    assert len(names) == len(set(names)) >= 7
+    assert len(names) == len(set(names)) >= 11
+    assert {"pose_hello", "notice_new_stream", "notice_wrong_stream",
+            "notice_bad_version_v1"} <= set(names)
+    assert {v["version"] for v in VECTORS} == {VERSION, VERSION_1}
+    assert [v["name"] for v in VECTORS if v["version"] == VERSION_1] == ["notice_bad_version_v1"]
     assert {v["type"] for v in VECTORS} == {"pose", "reply", "notice"}
     for kind in ("pose", "reply", "notice"):
         of_kind = [v for v in VECTORS if v["type"] == kind]
@@ -105,10 +122,14 @@ def test_vectors_cover_the_required_cases():
         assert v["key_hex"] in (None, KEY.hex())
         assert v["hex"] == v["hex"].lower() and v["description"].strip()
         assert "tag" not in v["fields"]
+        assert list(v["fields"]) == wire_fields(v), "fields in wire order"
+        if v["type"] == "pose" and v["name"] != "pose_hello":
+            assert v["fields"]["stream"] != 0, "POSE vectors carry a stream"
 
 
 def test_vectors_follow_the_spec_rules():
-    """An error REPLY has status 0 and every float zero; only BAD_TAG notices are tagged."""
+    """An error REPLY has status 0 and every float zero; only the notices about a known
+    session (BAD_TAG, NEW_STREAM, WRONG_STREAM) are tagged; only those two carry a stream."""
     for v in VECTORS:
         fields = v["fields"]
         if v["type"] == "reply" and fields["error"] != 0:
@@ -117,23 +138,37 @@ def test_vectors_follow_the_spec_rules():
                 if isinstance(value, (float, list)):
                     assert value in (0.0, [0.0, 0.0, 0.0]), name
         if v["type"] == "notice":
-            assert (v["key_hex"] is not None) == (fields["error"] == BAD_TAG)
+            known = (BAD_TAG, NEW_STREAM, WRONG_STREAM)
+            assert (v["key_hex"] is not None) == (fields["error"] in known)
+            assert (fields.get("stream", 0) != 0) == (fields["error"] in known[1:])
 
 
-@pytest.mark.parametrize("vec", VECTORS, ids=vector_id)
+@pytest.mark.parametrize("vec", V2_VECTORS, ids=vector_id)
 def test_vector_encodes_to_its_bytes(vec):
     message = message_from_fields(vec["type"], vec["fields"])
     tagger = Tagger(bytes.fromhex(vec["key_hex"])) if vec["key_hex"] else None
     assert encode_any(message, tagger).hex() == vec["hex"]
 
 
+def test_v1_bad_version_vector():
+    """The one v1 vector: what a v2 server answers a v1 datagram with; a v2 client's decoder
+    refuses it as BAD_VERSION, with its header."""
+    (vec,) = [v for v in VECTORS if v["version"] == VERSION_1]
+    f = vec["fields"]
+    data = bytes.fromhex(vec["hex"])
+    assert encode_bad_version_v1(f["session"], f["seq"], f["t_client_us"]) == data
+    assert msgpack.unpackb(data) == [1, NOTICE, f["session"], f["seq"], f["t_client_us"],
+                                     BAD_VERSION, None]
+    err = _error(data, decode_server_message)
+    assert (err.code, err.header) == (BAD_VERSION, (f["session"], f["seq"], f["t_client_us"]))
+
+
 @pytest.mark.parametrize("vec", VECTORS, ids=vector_id)
 def test_vector_bytes_are_the_canonical_msgpack(vec):
     """The bytes, rebuilt with plain msgpack and hmac (no burrforce code): the canonical form is
     msgpack's default packing (smallest ints, float64 floats, bin for bytes), tag last."""
-    cls = CLASSES[vec["type"]]
-    values = [vec["fields"][f] for f in cls._fields if f != "tag"]
-    elements = [VERSION, TYPE_CODES[vec["type"]], *values]
+    values = [vec["fields"][f] for f in wire_fields(vec)]
+    elements = [vec["version"], TYPE_CODES[vec["type"]], *values]
     if vec["key_hex"] is None:
         expected = msgpack.packb([*elements, None])
     else:
@@ -143,7 +178,7 @@ def test_vector_bytes_are_the_canonical_msgpack(vec):
     assert len(expected) <= (MAX_REQUEST_BYTES if vec["type"] == "pose" else MAX_REPLY_BYTES)
 
 
-@pytest.mark.parametrize("vec", VECTORS, ids=vector_id)
+@pytest.mark.parametrize("vec", V2_VECTORS, ids=vector_id)
 def test_vector_decodes_to_its_fields(vec):
     data = bytes.fromhex(vec["hex"])
     decoded = decode_any(vec["type"], data)
@@ -256,7 +291,8 @@ def vec3(f=finite):
 def poses(f=finite):
     return st.builds(Pose, session=uint32, seq=uint32, t_client_us=timestamps,
                      position=vec3(f), orientation=st.tuples(f, f, f, f), rpm=f,
-                     spindle_on=st.booleans(), velocity=st.none() | vec3(f), flags=uint32)
+                     spindle_on=st.booleans(), velocity=st.none() | vec3(f), flags=uint32,
+                     stream=uint32)
 
 
 def replies(f=finite):
@@ -270,7 +306,7 @@ def replies(f=finite):
 
 
 notices = st.builds(Notice, session=uint32, seq=uint32, t_client_us=timestamps,
-                    error=st.integers(0, 0xFFFF))
+                    error=st.integers(0, 0xFFFF), stream=uint32)
 
 
 def _check_round_trip(message, key, decode):
@@ -311,6 +347,14 @@ def test_reply_round_trip_is_bit_exact_for_any_float64(reply, key):
 @given(notice=notices, key=keys_or_none)
 def test_notice_round_trip(notice, key):
     _check_round_trip(notice, key, decode_server_message)
+
+
+@given(session=uint32, seq=uint32, t=timestamps, error=st.integers(0, 0xFFFF), stream=uint32,
+       key=keys_or_none)
+def test_encode_notice_values_matches_encode_notice(session, seq, t, error, stream, key):
+    tagger = Tagger(key) if key is not None else None
+    assert (encode_notice_values(session, seq, t, error, stream, tagger)
+            == encode_notice(Notice(session, seq, t, error, stream), tagger))
 
 
 @given(pose=poses(any_float).map(lambda p: p._replace(velocity=None)), tagged=st.booleans())
@@ -436,7 +480,7 @@ def test_decode_pose_accepts_non_canonical_msgpack(pose, tag, data):
              _draw_vec(data, pose.orientation), _draw_float(data, pose.rpm),
              b"\xc3" if pose.spindle_on else b"\xc2",
              b"\xc0" if pose.velocity is None else _draw_vec(data, pose.velocity),
-             _draw_int(data, pose.flags), _draw_tag(data, tag)]
+             _draw_int(data, pose.flags), _draw_int(data, pose.stream), _draw_tag(data, tag)]
     datagram = _draw_array(data, parts)
     assume(len(datagram) <= MAX_REQUEST_BYTES)
     decoded = decode_pose(datagram)
@@ -463,16 +507,17 @@ def test_decode_reply_accepts_non_canonical_msgpack(reply, tag, data):
 @given(notice=notices, tag=tags, data=st.data())
 def test_decode_notice_accepts_non_canonical_msgpack(notice, tag, data):
     datagram = _draw_array(data, [*_draw_header(data, NOTICE, notice),
-                                  _draw_int(data, notice.error), _draw_tag(data, tag)])
+                                  _draw_int(data, notice.error), _draw_int(data, notice.stream),
+                                  _draw_tag(data, tag)])
     assert canon(decode_server_message(datagram)) == canon(notice._replace(tag=tag))
 
 
 def test_decode_pose_accepts_single_floats_and_ints_via_msgpack():
-    elements = [1, 1, 70000, 300, 1 << 40, [1, -2, 3], [0, 0, 0, 1], 60000, True, [0.5, 1, -2],
-                6, None]
+    elements = [2, 1, 70000, 300, 1 << 40, [1, -2, 3], [0, 0, 0, 1], 60000, True, [0.5, 1, -2],
+                6, 9, None]
     pose = decode_pose(msgpack.packb(elements))
     assert canon(pose) == canon(Pose(70000, 300, 1 << 40, (1.0, -2.0, 3.0), (0.0, 0.0, 0.0, 1.0),
-                                     60000.0, True, (0.5, 1.0, -2.0), 6, None))
+                                     60000.0, True, (0.5, 1.0, -2.0), 6, 9, None))
     elements[5:8] = [[0.1, 0.2, 0.3], [0.0, 0.0, 0.6, 0.8], 1234.5]
     single = msgpack.packb(elements, use_single_float=True)
     assert single.count(b"\xca") == 9 and b"\xcb" not in single
@@ -486,7 +531,8 @@ def test_decode_pose_accepts_single_floats_and_ints_via_msgpack():
 
 # -- decode_pose errors -------------------------------------------------------------------------
 HEADER = (7, 3, 1000)
-VALID = [1, 1, *HEADER, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], 60000.0, True, None, 0, None]
+VALID = [2, 1, *HEADER, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], 60000.0, True, None, 0, 77,
+         None]
 
 
 def _with(index: int, value: object) -> list:
@@ -503,13 +549,16 @@ def _error(data: bytes, decode=decode_pose) -> ProtocolError:
 
 def test_valid_base_datagram_decodes():
     assert decode_pose(msgpack.packb(VALID)) == Pose(7, 3, 1000, (1.0, 2.0, 3.0),
-                                                     (0.0, 0.0, 0.0, 1.0), 60000.0, True)
+                                                     (0.0, 0.0, 0.0, 1.0), 60000.0, True,
+                                                     stream=77)
 
 
 def test_limits_of_header_fields_are_accepted():
-    data = msgpack.packb([1, 1, U32 - 1, U32 - 1, MAX_TIMESTAMP_US, *VALID[5:]])
+    data = msgpack.packb([2, 1, U32 - 1, U32 - 1, MAX_TIMESTAMP_US, *VALID[5:]])
     assert decode_pose(data)[:3] == (U32 - 1, U32 - 1, MAX_TIMESTAMP_US)
     assert decode_pose(msgpack.packb(_with(10, U32 - 1))).flags == U32 - 1
+    assert decode_pose(msgpack.packb(_with(11, U32 - 1))).stream == U32 - 1
+    assert decode_pose(msgpack.packb(_with(11, 0))).stream == 0
 
 
 def test_too_big():
@@ -530,7 +579,7 @@ def test_exactly_max_request_bytes_is_read():
 
 
 @pytest.mark.parametrize("data", [
-    b"", b"\xc1", b"\x9c", b"\x92\x01", b"\xcb\x00", b"\xd9\x05ab", msgpack.packb(VALID)[:-1],
+    b"", b"\xc1", b"\x9d", b"\x92\x01", b"\xcb\x00", b"\xd9\x05ab", msgpack.packb(VALID)[:-1],
     msgpack.packb(VALID)[:20]], ids=repr)
 def test_not_msgpack(data):
     err = _error(data)
@@ -556,7 +605,7 @@ def test_short_arrays(n):
     assert (err.code, err.header) == (MALFORMED, None)
 
 
-@pytest.mark.parametrize("version", [0, 2, 255, 70000, -1])
+@pytest.mark.parametrize("version", [0, 1, 3, 255, 70000, -1])
 def test_wrong_version(version):
     err = _error(msgpack.packb(_with(0, version)))
     assert (err.code, err.header) == (BAD_VERSION, HEADER)
@@ -564,7 +613,8 @@ def test_wrong_version(version):
 
 def test_wrong_version_is_reported_whatever_follows_the_header():
     """Elements 0–4 mean the same in every version: a later version's shape gets BAD_VERSION."""
-    for elements in ([2, 1, *HEADER], [2, 1, *HEADER, "future", [1, 2], {"k": 1}]):
+    for elements in ([3, 1, *HEADER], [3, 1, *HEADER, "future", [1, 2], {"k": 1}],
+                     [1, 1, *HEADER, *VALID[5:11], None]):
         err = _error(msgpack.packb(elements))
         assert (err.code, err.header) == (BAD_VERSION, HEADER)
 
@@ -583,7 +633,8 @@ def test_server_message_types_sent_to_the_server_are_bad_type():
         assert (err.code, err.header) == (BAD_TYPE, HEADER)
 
 
-@pytest.mark.parametrize("elements", [VALID[:5], VALID[:11], [*VALID, None], [*VALID, 0, 0]],
+@pytest.mark.parametrize("elements", [VALID[:5], VALID[:11], VALID[:12], [*VALID, None],
+                                      [*VALID, 0, 0]],
                          ids=lambda e: f"{len(e)} elements")
 def test_wrong_element_count(elements):
     err = _error(msgpack.packb(elements))
@@ -615,11 +666,12 @@ BAD_FIELDS = {
     9: [[1.0, 2.0], [1.0, 2.0, 3.0, 4.0], "v", [True, 0.0, 0.0], [[1.0], 2.0, 3.0], {"v": 0},
         0, 0.0, False, EMPTY_EXT],
     10: [-1, U32, 1 << 63, 1.0, True, None, "0", [0], {"f": 0}, EMPTY_EXT],
-    11: [bytes(15), bytes(17), b"", bytes(64), "x" * 16, 16, True, [0] * 16, {"tag": 0},
+    11: [-1, U32, 1 << 63, 1.0, True, None, "0", [0], {"s": 0}, EMPTY_EXT],
+    12: [bytes(15), bytes(17), b"", bytes(64), "x" * 16, 16, True, [0] * 16, {"tag": 0},
          EMPTY_EXT],
 }
 FIELD_NAMES = {5: "position", 6: "orientation", 7: "rpm", 8: "spindle_on", 9: "velocity",
-               10: "flags", 11: "tag"}
+               10: "flags", 11: "stream", 12: "tag"}
 
 
 @pytest.mark.parametrize(("index", "value"),
@@ -632,7 +684,7 @@ def test_field_of_wrong_type_is_malformed_with_header(index, value):
     assert err.detail
 
 
-@pytest.mark.parametrize("index", [5, 7, 9, 11])
+@pytest.mark.parametrize("index", [5, 7, 9, 11, 12])
 def test_ext_type_with_data_is_rejected(index):
     err = _error(msgpack.packb(_with(index, msgpack.ExtType(1, b"\x00" * 8))))
     assert (err.code, err.header) == (MALFORMED, None)
@@ -647,7 +699,7 @@ def _splice(index: int, raw: bytes) -> bytes:
     """VALID packed with element ``index`` replaced by the raw msgpack ``raw``."""
     parts = [msgpack.packb(x) for x in VALID]
     parts[index] = raw
-    return b"\x9c" + b"".join(parts)
+    return b"\x9d" + b"".join(parts)
 
 
 @pytest.mark.parametrize("data", [
@@ -658,7 +710,7 @@ def _splice(index: int, raw: bytes) -> bytes:
     b"\x95" + b"\x91" * 500 + b"\xc0",
     _splice(5, b"\x91" * 400 + b"\xc0"),
     _splice(9, b"\x93" + b"\x91" * 300 + b"\xc0\xc0\xc0"),
-    _splice(11, b"\x81\xa1t" * 100 + b"\xc0"),
+    _splice(12, b"\x81\xa1t" * 100 + b"\xc0"),
 ], ids=lambda d: f"{d[:6].hex()}…({len(d)} bytes)")
 def test_nesting_bombs(data):
     assert len(data) <= MAX_REQUEST_BYTES
@@ -673,11 +725,11 @@ def test_nesting_bombs(data):
     msgpack.packb(list(range(33))),
     _splice(5, msgpack.packb({f"k{i}": 0 for i in range(17)})),
     _splice(7, msgpack.packb("r" * 100)),
-    _splice(11, msgpack.packb(b"t" * 65)),
+    _splice(12, msgpack.packb(b"t" * 65)),
     _splice(6, msgpack.packb([0.0] * 33)),
     b"\xdc\xff\xff", b"\xdd\xff\xff\xff\xff", b"\xde\xff\xff", b"\xdf\xff\xff\xff\xff",
     b"\xdb\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff", b"\xc9\xff\xff\xff\xff\x01",
-    b"\x9c" + b"\xdd\xff\xff\xff\xff" * 12,
+    b"\x9d" + b"\xdd\xff\xff\xff\xff" * 13,
 ], ids=lambda d: f"{d[:6].hex()}…({len(d)} bytes)")
 def test_objects_beyond_the_limits(data):
     err = _error(data)
@@ -692,10 +744,10 @@ def test_values_are_not_checked_by_decoding():
 
 
 # -- decode_server_message errors ---------------------------------------------------------------
-REPLY_VALID = [1, 2, *HEADER, 11, 12, 0, 3, [1.0, 2.0, 3.0], [0.5, 0.25, 0.0], [0.0, 0.0, 1.0],
+REPLY_VALID = [2, 2, *HEADER, 11, 12, 0, 3, [1.0, 2.0, 3.0], [0.5, 0.25, 0.0], [0.0, 0.0, 1.0],
                4.0, 0.5, 1000.0, [0.0, 0.0, 1.0], [1.0, 2.0, 3.0], [0.0, 0.0, 0.0], 1.5, 0.01,
                0.002, 9, [0.0, 0.0, -1.0], None]
-NOTICE_VALID = [1, 3, *HEADER, 6, None]
+NOTICE_VALID = [2, 3, *HEADER, 6, 0, None]
 
 
 def _reply_with(index: int, value: object) -> bytes:
@@ -710,6 +762,8 @@ def test_valid_server_messages_decode():
     assert reply.status_names() == ["cutting", "contact"]
     notice = decode_server_message(msgpack.packb(NOTICE_VALID))
     assert notice == Notice(*HEADER, 6) and notice.error_name == "bad_tag"
+    notice = decode_server_message(msgpack.packb([*NOTICE_VALID[:5], NEW_STREAM, U32 - 1, None]))
+    assert notice == Notice(*HEADER, NEW_STREAM, U32 - 1) and notice.error_name == "new_stream"
 
 
 def test_server_message_too_big():
@@ -718,20 +772,23 @@ def test_server_message_too_big():
 
 
 def test_server_message_version_and_type():
-    err = _error(msgpack.packb([2, *REPLY_VALID[1:]]), decode_server_message)
-    assert (err.code, err.header) == (BAD_VERSION, HEADER)
+    for version in (1, 3):
+        err = _error(msgpack.packb([version, *REPLY_VALID[1:]]), decode_server_message)
+        assert (err.code, err.header) == (BAD_VERSION, HEADER)
     for kind in (POSE, 0, 4):
-        err = _error(msgpack.packb([1, kind, *REPLY_VALID[2:]]), decode_server_message)
+        err = _error(msgpack.packb([2, kind, *REPLY_VALID[2:]]), decode_server_message)
         assert (err.code, err.header) == (BAD_TYPE, HEADER)
     err = _error(msgpack.packb(VALID), decode_server_message)
     assert (err.code, err.header) == (BAD_TYPE, HEADER)
 
 
 @pytest.mark.parametrize("elements", [
-    NOTICE_VALID[:6], [*NOTICE_VALID, None], [*NOTICE_VALID[:5], -1, None],
-    [*NOTICE_VALID[:5], 1 << 16, None], [*NOTICE_VALID[:5], "bad_tag", None],
-    [*NOTICE_VALID[:5], True, None], [*NOTICE_VALID[:5], 6.0, None],
-    [*NOTICE_VALID[:6], bytes(15)], [*NOTICE_VALID[:6], "t" * 16],
+    NOTICE_VALID[:7], [*NOTICE_VALID, None], [*NOTICE_VALID[:5], -1, 0, None],
+    [*NOTICE_VALID[:5], 1 << 16, 0, None], [*NOTICE_VALID[:5], "bad_tag", 0, None],
+    [*NOTICE_VALID[:5], True, 0, None], [*NOTICE_VALID[:5], 6.0, 0, None],
+    [*NOTICE_VALID[:6], -1, None], [*NOTICE_VALID[:6], U32, None],
+    [*NOTICE_VALID[:6], None, None], [*NOTICE_VALID[:6], 1.0, None],
+    [*NOTICE_VALID[:7], bytes(15)], [*NOTICE_VALID[:7], "t" * 16],
     REPLY_VALID[:23], [*REPLY_VALID, None], REPLY_VALID[:5],
 ], ids=lambda e: f"{len(e)} elements")
 def test_malformed_notice_or_reply_shape(elements):
@@ -760,7 +817,7 @@ def test_reply_integer_limits():
 
 
 def test_read_header():
-    assert read_header(msgpack.packb(VALID)) == (1, 1, *HEADER)
+    assert read_header(msgpack.packb(VALID)) == (2, 1, *HEADER)
     assert read_header(msgpack.packb([9, 2, *HEADER, "anything"])) == (9, 2, *HEADER)
     for data in (b"", b"\xc1", msgpack.packb(VALID[:4]), msgpack.packb(_with(2, -1)),
                  bytes(2000)):
@@ -856,7 +913,7 @@ def test_fuzz_arbitrary_msgpack_objects(obj):
     _decodes_or_protocol_error(msgpack.packb(obj))
 
 
-@given(index=st.integers(0, 11), obj=msgpack_objects)
+@given(index=st.integers(0, 12), obj=msgpack_objects)
 def test_fuzz_one_pose_element_replaced(index, obj):
     _decodes_or_protocol_error(msgpack.packb(_with(index, obj)))
 

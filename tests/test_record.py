@@ -15,7 +15,6 @@ import pytest
 
 from burrforce.proto.codec import decode_server_message
 from burrforce.proto.messages import (
-    FLAG_NEW_STREAM,
     FLAG_NO_CARVE,
     OK,
     STATUS_CUTTING,
@@ -70,7 +69,7 @@ class Driver:
         now_ns = T0_NS + t_us * 1000
         pose = Pose(1, self.seq, t_us, tuple(position), orientation or tilted(), rpm, on,
                     None, flags)
-        assert self.session.admit(pose.seq, now_ns, pose.flags, t_us) == OK
+        assert self.session.admit(pose.seq) == OK
         data, error = self.session.respond(pose, now_ns)
         assert error == OK
         reply = decode_server_message(data)
@@ -84,7 +83,7 @@ class Driver:
         flags = kw.pop("flags", 0)
         return [self.tick((x0 + feed_mm_s * (self.seq + 1 - start) * 1e-3, 0.0,
                            2.0 - depth_mm),
-                          flags=flags | (FLAG_NEW_STREAM if self.seq == 0 else 0), **kw)
+                          flags=flags, **kw)
                 for _ in range(n)]
 
 

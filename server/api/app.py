@@ -16,12 +16,14 @@ from .. import __version__
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
 from .sources import SourceError
+from .supervisor import Supervisor
 
 API_PREFIX = "/v1"
 _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
 
 
-def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
+def create_app(plane: ControlPlane, token: str, stats: LoopStats,
+               supervisor: Supervisor | None = None) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
     from . import routes_calibration, routes_data, routes_devices, routes_mesh, routes_sessions
 
@@ -66,13 +68,15 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
 
     @app.get(API_PREFIX + "/health", tags=["system"])
     def health(response: Response) -> dict:
-        """Liveness without a token: is the hot loop running (503 if not), how many
-        sessions."""
-        alive = plane.hot.is_alive()
+        """Liveness without a token: is the hot loop running (503 if not, e.g. while it is
+        restarted after a crash), how many sessions, its restarts."""
+        loop = supervisor.public() if supervisor is not None else None
+        alive = plane.hot.is_alive() and (loop is None or loop["state"] == "running")
         if not alive:
             response.status_code = 503
         latest = stats.latest
-        return {"status": "ok" if alive else "hot loop down", "hot_loop": alive,
+        status = "ok" if alive else (f"hot loop {loop['state']}" if loop else "hot loop down")
+        return {"status": status, "hot_loop": alive, "supervisor": loop,
                 "version": __version__,
                 "uptime_s": round(time.time() - plane.started_s, 1),
                 "sessions": len(plane.sessions),
@@ -81,6 +85,8 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats) -> FastAPI:
                 "packets_received": latest["counters"]["received"] if latest else None}
 
     reg = registry(stats, getattr(plane, "devices", None))
+    if supervisor is not None:
+        reg.register(supervisor)
 
     @app.get("/metrics", tags=["system"], dependencies=[Depends(authorize)],
              response_class=Response)

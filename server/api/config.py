@@ -10,6 +10,7 @@ TOML (``burrforce serve --config FILE``)::
     data_dir = "~/.local/share/burrforce"   # uploads, snapshots, recordings
     bone_library = "/srv/bones" # bones sessions may load by name (library:NAME)
     upload_max_mb = 1024
+    data_budget_bytes = "20GiB" # uploads + snapshots + recordings + exports; 0: no limit
     cors_origins = []           # browser origins allowed to call the API (default none)
     max_sessions = 16           # sessions held at once (each keeps its bone in memory)
 
@@ -25,8 +26,10 @@ Environment variables: ``BURRFORCE_`` + the key in upper case (``BURRFORCE_HTTP_
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
+import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -42,6 +45,16 @@ else:  # pragma: no cover
 DEFAULT_HTTP_PORT = 47811
 DEFAULT_UDP_PORT = 47810
 ENV_PREFIX = "BURRFORCE_"
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is reachable from this machine only (keyless sessions are for it)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def default_data_dir() -> Path:
@@ -60,6 +73,9 @@ class ServeConfig:
         data_dir: uploads, snapshots and recordings live under it.
         bone_library: a folder of bone files sessions may load as ``library:NAME``.
         upload_max_mb: the largest bone upload accepted, MB.
+        data_budget_bytes: what uploads, snapshots, recordings and exports may take together
+            (``GET /v1/storage``); writes beyond it are refused. 0: no limit. TOML and the
+            environment also take sizes like ``"20GiB"`` or ``"500M"``.
         cors_origins: browser origins allowed to call the API; empty turns CORS off.
         max_sessions: sessions the server holds at once (each keeps its bone in memory).
         bone, voxel_mm, frame: the default session's bone and engine frame.
@@ -77,6 +93,7 @@ class ServeConfig:
     data_dir: Path = field(default_factory=default_data_dir)
     bone_library: Path | None = None
     upload_max_mb: float = 1024.0
+    data_budget_bytes: int = 20 << 30
     cors_origins: tuple[str, ...] = ()
     max_sessions: int = 16
     bone: str = "phantom:temporal"
@@ -100,6 +117,10 @@ class ServeConfig:
                 math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
             raise ValueError(f"upload_max_mb must be a positive number, got "
                              f"{self.upload_max_mb!r}")
+        if isinstance(self.data_budget_bytes, bool) or not isinstance(
+                self.data_budget_bytes, int) or self.data_budget_bytes < 0:
+            raise ValueError(f"data_budget_bytes must be a non-negative integer (0: no "
+                             f"limit), got {self.data_budget_bytes!r}")
         if self.device is not None and self.device not in PROFILES:
             raise ValueError(f"device must be one of {', '.join(PROFILES)}, got "
                              f"{self.device!r}")
@@ -114,7 +135,7 @@ class ServeConfig:
 
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
-                    "upload_max_mb", "cors_origins", "max_sessions"),
+                    "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions"),
          "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
                      "no_auth")}
 
@@ -122,6 +143,11 @@ _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_
 def _coerce(name: str, value: object, source: str) -> object:
     """A TOML or environment value as the field's type; ValueError names where it came from."""
     kind = _TYPES[name]
+    if name == "data_budget_bytes" and value is not None:
+        try:
+            return parse_size_bytes(value)  # type: ignore[arg-type]
+        except ValueError as exc:
+            raise ValueError(f"{source}: {name}: {exc}") from None
     try:
         if value is None:
             return None
@@ -154,6 +180,26 @@ def _coerce(name: str, value: object, source: str) -> object:
         return value
     except (TypeError, ValueError):
         raise ValueError(f"{source}: {name} has the wrong type ({value!r})") from None
+
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(?:([kmgt])(?:i?b)?|b)?\s*$", re.IGNORECASE)
+
+
+def parse_size_bytes(value: str | int) -> int:
+    """A size in bytes from ``20GiB``, ``20G``, ``500MB``, ``1.5T`` or a plain number.
+    K, M, G, T are binary (1024-based) with or without ``iB``/``B``: a budget is about
+    disk space, which tools report that way. Raises ValueError saying what was wrong."""
+    if isinstance(value, bool):
+        raise ValueError(f"not a size: {value!r}")
+    if isinstance(value, int):
+        if value < 0:
+            raise ValueError(f"a size cannot be negative: {value}")
+        return value
+    match = _SIZE.match(str(value))
+    if match is None:
+        raise ValueError(f"not a size: {value!r} (e.g. 20GiB, 500M, 0)")
+    number, unit = match.groups()
+    return int(float(number) * (1 << (10 * " KMGT".index((unit or " ").upper()))))
 
 
 def from_toml(path: Path, base: ServeConfig | None = None) -> ServeConfig:

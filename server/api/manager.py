@@ -11,26 +11,38 @@ loop's interpreter, and exports read the bone without asking the loop.
 from __future__ import annotations
 
 import logging
+import os
+import re
 import secrets
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ...proto.sequence import seq_after
 from ...proto.tag import new_key
 from ..bone import Bone, Material, MaterialTable, ShaftParams
 from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError, save_bone
-from ..bone.shared import SharedBone, SharedBoneRef, publish, run_directory
+from ..bone.shared import (
+    SharedBone,
+    SharedBoneRef,
+    end_interrupted_tick,
+    publish,
+    run_directory,
+)
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S
 from ..model.params import CuttingParams
 from ..model.vibration import VibrationParams
 from .config import ServeConfig
+from .generation import bone_generation, next_generation
 from .models import Features, Parameters
 from .sources import BoneSource, SourceError, SourceRoots, resolve, snapshot_path
 
@@ -38,6 +50,12 @@ log = logging.getLogger("burrforce.api")
 
 #: Jobs kept for status queries after they finish.
 JOBS_KEPT = 200
+#: The file in a shared-bone directory naming the process that owns it.
+OWNER_FILE = "owner.pid"
+RUN_DIR_NAME = re.compile(r"burrforce-[a-z0-9_]{8}")
+#: After a restart, stream numbers continue this far past the last one seen (SPEC 5.2): the
+#: streams a loop opened after the last look are never offered again.
+STREAM_JUMP = 1 << 16
 
 
 class ApiError(Exception):
@@ -64,6 +82,9 @@ class Job:
     total: int = 0
     created_s: float = field(default_factory=time.time)
     finished_s: float | None = None
+    #: The HTTP status of a failure that is the server's, not the bone's (503: the hot loop
+    #: was restarting); None for a bone that could not be loaded.
+    status: int | None = None
     #: Set when the job is done or failed.
     finished: threading.Event = field(default_factory=threading.Event, repr=False)
 
@@ -93,11 +114,19 @@ class ManagedSession:
     bone_info: dict | None = None
     ref: SharedBoneRef | None = None
     reader: SharedBone | None = None
+    #: An open descriptor of the shared bone file (its name is unlinked once the loop maps
+    #: it): what lets a restarted hot loop map the same, carved memory again.
+    bone_fd: int | None = None
     state: str = "loading"  # loading | ready | failed
     error: str | None = None
     job_id: str | None = None
     in_loop: bool = False
     recording: dict | None = None
+    #: The first stream number the next hot loop offers (None: a random one).
+    next_stream: int | None = None
+    #: Applied once to the next bone loaded, before it is shared: a resumed session's
+    #: carving (``journal``).
+    pending_carve: Callable[[Bone], None] | None = None
     #: Material changes made over REST, per label (None: the primary material), applied again
     #: to every bone this session loads (a reset keeps the user's Us and K).
     overrides: dict = field(default_factory=dict)
@@ -163,6 +192,8 @@ class ControlPlane:
             d.mkdir(parents=True, exist_ok=True)
         self.recordings_dir = self.data_dir / "recordings"
         self.run_dir = run_directory(0)
+        (self.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n")
+        remove_stale_run_directories(self.run_dir.parent, keep=self.run_dir)
         self.sessions: dict[int, ManagedSession] = {}
         self.jobs: dict[str, Job] = {}
         self._lock = threading.RLock()
@@ -176,12 +207,17 @@ class ControlPlane:
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, session_id: int | None, bone: BoneSource, params: Parameters,
                        features: Features, authenticated: bool = True,
-                       key_hex: str | None = None) -> tuple[ManagedSession, Job]:
+                       key_hex: str | None = None,
+                       prepare: Callable[[ManagedSession], None] | None = None
+                       ) -> tuple[ManagedSession, Job]:
         """Register a session and start loading its bone (``Job``). The session reaches the
-        hot loop when the load finishes."""
+        hot loop when the load finishes. ``prepare`` sets what a resumed session had
+        (material changes, its carving) before the load starts."""
         base = ManagedSession(0, None, bone, CuttingParams(), ShaftParams(), VibrationParams(),
                               SessionConfig(), features)
         self._apply_parameters(base, params, check_bone=False)
+        if prepare is not None:
+            prepare(base)
         with self._lock:
             if len(self.sessions) >= self.config.max_sessions:
                 raise ApiError(429, f"the server holds its maximum of "
@@ -226,6 +262,9 @@ class ControlPlane:
             self._stop_recording(session)
             with self._lock:
                 self.sessions.pop(session_id, None)
+            # Now, not at the journal's next pass: a stop meanwhile must not resume it.
+            shutil.rmtree(self.data_dir / "journal" / "sessions" / str(session_id),
+                          ignore_errors=True)
             try:
                 if session.in_loop:
                     session.in_loop = False
@@ -283,6 +322,10 @@ class ControlPlane:
             bone = source.load(progress)
             job.stage = "checking"
             self._check_bone(session, bone)
+            carve, session.pending_carve = session.pending_carve, None
+            if carve is not None:
+                job.stage = "replaying the journal"
+                carve(bone)
             job.stage = "sharing"
             with self._lock:
                 self._file_counter += 1
@@ -318,21 +361,25 @@ class ControlPlane:
                     reader.close()
                     Path(ref.path).unlink(missing_ok=True)
                     raise
-                # Both processes map it now: the name can go, so no crash leaves it behind.
+                # Both processes map it now: the name can go, so no crash leaves it behind;
+                # the descriptor keeps the memory reachable for a restarted loop.
+                fd = os.open(ref.path, os.O_RDWR)
                 Path(ref.path).unlink(missing_ok=True)
                 session.sent = {"params": spec.params, "shaft": spec.shaft,
                                 "config": spec.config, "publish": spec.publish}
-                old = (session.reader, session.ref)
+                old = (session.reader, session.ref, session.bone_fd)
                 session.in_loop = True
-                session.ref, session.reader = ref, reader
+                session.ref, session.reader, session.bone_fd = ref, reader, fd
                 session.materials, session.primary_label = materials, primary
                 session.source = source
-                session.bone_info = _bone_summary(reader, info)
+                # After session.reader, never before: generation.py's "Reading order".
+                session.bone_info = {**_bone_summary(reader, info),
+                                     "generation": next_generation(self.data_dir)}
                 session.state, session.error = "ready", None
                 self._close_bone(*old)
             job.state = "done"
         except ApiError as exc:
-            self._fail(session, job, exc.detail)
+            self._fail(session, job, exc.detail, exc.status if exc.status == 503 else None)
         except (BoneFileError, SourceError, ValueError, OSError, RuntimeError) as exc:
             self._fail(session, job, str(exc))
         except MemoryError:
@@ -344,8 +391,10 @@ class ControlPlane:
             job.finished_s = time.time()
             job.finished.set()
 
-    def _fail(self, session: ManagedSession, job: Job, message: str) -> None:
+    def _fail(self, session: ManagedSession, job: Job, message: str,
+              status: int | None = None) -> None:
         job.state, job.error = "failed", message
+        job.status = status
         # A session that already runs keeps its bone; a new one is marked failed.
         if session.in_loop:
             session.state, session.error = "ready", None
@@ -363,16 +412,66 @@ class ControlPlane:
         key = bytes.fromhex(session.key_hex) if session.key_hex else None
         return SessionSpec(session.id, ref, None, key, session.effective_config(),
                            session.params, session.effective_shaft(),
-                           materials=materials, publish=session.features.deltas)
+                           materials=materials, publish=session.features.deltas,
+                           next_stream=session.next_stream)
+
+    # -- a restarted hot loop -----------------------------------------------------------------
+    def rebuild(self, hot: HotLoopProcess, streams: dict[int, int] | None = None) -> list[str]:
+        """Move every session the old loop ran into ``hot`` (a new, running loop): same id,
+        key, parameters and materials, and the carved bone itself: the new loop maps the
+        same memory again, through the descriptor kept since the load.
+
+        ``streams`` (session id → the next stream number the old loop last reported) makes
+        the new loop hand out stream numbers past any the old one may have opened since
+        (``STREAM_JUMP``), so nothing captured from before the crash is accepted again.
+
+        Returns a line for each thing the crash ended (a recording, a session that could not
+        be rebuilt)."""
+        self.hot = hot
+        notes = []
+        for session in list(self.sessions.values()):
+            with session.lock:
+                if not session.in_loop or session.bone_fd is None or session.ref is None:
+                    continue
+                if session.recording is not None:
+                    notes.append(f"session {session.id}: recording {session.recording['name']}"
+                                 " ended with the loop (kept up to its last chunk)")
+                    session.recording = None
+                # Always forward, from the later of what the loop last reported and what it
+                # was started with: a second crash before the next report must not offer the
+                # numbers the first restart did.
+                base = later_stream((streams or {}).get(session.id), session.next_stream)
+                if base is not None:
+                    session.next_stream = next_stream_after(base)
+                path = f"/proc/{os.getpid()}/fd/{session.bone_fd}"
+                end_interrupted_tick(path)
+                spec = self._spec(session, replace(session.ref, path=path), session.materials)
+                try:
+                    self.call("add_session", spec=spec)
+                except ApiError as exc:
+                    if exc.status == 503:  # the new loop died too: the next restart retries
+                        notes.append(f"session {session.id}: not rebuilt yet ({exc.detail})")
+                        continue
+                    session.in_loop = False
+                    session.state, session.error = "failed", (
+                        f"not rebuilt after the hot loop restarted: {exc.detail}")
+                    notes.append(f"session {session.id}: {session.error}")
+                    continue
+                session.sent = {"params": spec.params, "shaft": spec.shaft,
+                                "config": spec.config, "publish": spec.publish}
+        return notes
 
     def _drop_bone(self, session: ManagedSession) -> None:
-        self._close_bone(session.reader, session.ref)
-        session.reader = session.ref = None
+        self._close_bone(session.reader, session.ref, session.bone_fd)
+        session.reader = session.ref = session.bone_fd = None
 
     @staticmethod
-    def _close_bone(reader: SharedBone | None, ref: SharedBoneRef | None) -> None:
+    def _close_bone(reader: SharedBone | None, ref: SharedBoneRef | None,
+                    fd: int | None = None) -> None:
         if reader is not None:
             reader.close()
+        if fd is not None:
+            os.close(fd)
         if ref is not None:
             # The loop may still map it until its old engine is collected: unlinking only
             # removes the name; the memory goes with the last mapping.
@@ -551,8 +650,11 @@ class ControlPlane:
     def call(self, command: str, **kwargs: object) -> object:
         """A hot-loop command, its failures as API errors: the loop's ValueError → 422, a
         missing session → 404, a dead loop or anything else → 503."""
+        # Adding a session maps and warms its bone (a first start may compile kernels).
+        timeout_s = (START_TIMEOUT_S if command in ("add_session", "replace_session")
+                     else CALL_TIMEOUT_S)
         try:
-            return self.hot.call(command, **kwargs)
+            return self.hot.call(command, timeout_s=timeout_s, **kwargs)
         except RuntimeError as exc:
             text = str(exc)
             if "ValueError" in text or "BoneFileError" in text:
@@ -578,13 +680,18 @@ class ControlPlane:
         return bone
 
     def save_snapshot(self, session_id: int, name: str | None) -> dict:
+        generation = bone_generation(self.get(session_id))  # before the bone: generation.py
         bone = self.snapshot_bone(session_id)
         if name is None:
             name = f"session-{session_id}-v{bone.grid.version}-{time.strftime('%Y%m%d-%H%M%S')}"
         path = snapshot_path(self.roots.snapshots, name)
         if path.exists():
             raise ApiError(409, f"snapshot {name!r} exists")
-        save_bone(bone, path)
+        from .storage import check_written, require_room  # (it imports this module)
+
+        require_room(self, "a snapshot")
+        save_bone(bone, path, generation=generation)
+        check_written(self, path, "the snapshot")
         return snapshot_entry(path)
 
     def list_snapshots(self) -> list[dict]:
@@ -603,17 +710,23 @@ class ControlPlane:
                                           else name + ".burrrec")
             if path.exists():
                 raise ApiError(409, f"recording {path.name} exists")
+            from .storage import recording_cap, require_room  # (it imports this module)
+
+            require_room(self, "a recording")
             path.mkdir(parents=True)
             try:
                 from ..record.format import SNAPSHOT_NAME
                 save_bone(bone, path / SNAPSHOT_NAME)
+                # Capped by the budget's room left, so it stops cleanly at the budget.
+                max_bytes = recording_cap(self, max_bytes)
                 result = self.call("start_recording", session_id=session_id,
                                        path=str(path), snapshot_version=bone.grid.version,
                                        bone_name=session.source.source, max_bytes=max_bytes)
             except Exception:
                 shutil.rmtree(path, ignore_errors=True)
                 raise
-            session.recording = {"name": path.name, "path": str(path), **result}
+            session.recording = {"name": path.name, "path": str(path), "max_bytes": max_bytes,
+                                 **result}
             return session.recording
 
     def recording_status(self, session_id: int) -> dict | None:
@@ -678,6 +791,56 @@ class ControlPlane:
             return resolve(source, self.roots, kind, voxel_mm, spacing_mm)
         except SourceError as exc:
             raise ApiError(exc.status, str(exc)) from None
+
+
+def remove_stale_run_directories(base: Path, keep: Path) -> list[Path]:
+    """Remove the shared-bone directories that servers killed with SIGKILL left in ``base``
+    (``/dev/shm``, or the temporary directory): those whose owner process is gone, and
+    empty ones without an owner (older servers). Returns what was removed."""
+    removed = []
+    for d in base.glob("burrforce-*"):
+        # Only tempfile.mkdtemp's names (run_directory): not a bench's temporary folder.
+        if d == keep or not d.is_dir() or not RUN_DIR_NAME.fullmatch(d.name):
+            continue
+        try:
+            pid = int((d / OWNER_FILE).read_text())
+        except (OSError, ValueError):
+            pid = None
+            try:
+                if any(d.iterdir()):
+                    continue  # not ours to judge
+            except OSError:
+                continue
+        if pid is not None and _alive(pid):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # somebody else's live process
+        return True
+    return True
+
+
+def later_stream(a: int | None, b: int | None) -> int | None:
+    """The later of two stream numbers (serial order, mod 2**32), either may be None."""
+    if a is None or b is None:
+        return b if a is None else a
+    return a if seq_after(a, b) else b
+
+
+def next_stream_after(stream: int) -> int:
+    """The first stream number a new hot loop may offer when the old one last reported
+    ``stream`` as its next (uint32, never 0): ``STREAM_JUMP`` past it, so the streams it
+    opened after that report are skipped too."""
+    n = (int(stream) + STREAM_JUMP) % (1 << 32)
+    return n or 1
 
 
 def default_primary(materials: MaterialTable) -> int | None:

@@ -15,6 +15,7 @@ from ...proto.mesh_chunks import (
     FLAG_SESSION_FRAME,
     Chunk,
     MeshMessage,
+    header_size,
 )
 from ..bone.chunks import (
     CHUNK_BRICKS_DEFAULT,
@@ -89,10 +90,13 @@ class ChunkTransform:
 
 
 def mesh_page(grid: BoneGrid, req: MeshRequest, since: int | None, cursor: int = 0,
-              max_bytes: int = MAX_BYTES_DEFAULT) -> MeshMessage:
+              max_bytes: int = MAX_BYTES_DEFAULT,
+              generation: int | None = None) -> MeshMessage:
     """One page: the chunks changed after bone version ``since`` (every chunk with surface
     when ``since`` is None or newer than the bone), from chunk number ``cursor`` on, until
-    ``max_bytes`` is reached (at least one chunk).
+    ``max_bytes`` is reached (at least one chunk). ``generation``: the bone's generation,
+    for a format version 2 message (None: version 1). The caller turns a client's copy of
+    another generation into ``since=None``.
 
     Raises:
         ValueError: a negative ``since`` or ``cursor``, or ``max_bytes`` out of range.
@@ -112,9 +116,10 @@ def mesh_page(grid: BoneGrid, req: MeshRequest, since: int | None, cursor: int =
     flags = (FLAG_CW if req.cw else 0) | (FLAG_SESSION_FRAME if req.session_frame else 0)
     if full and cursor == 0:
         flags |= FLAG_FULL
-    out = MeshMessage(req.session, cells, version, 0 if full else int(since), flags)
+    out = MeshMessage(req.session, cells, version, 0 if full else int(since), flags,
+                      generation=generation)
     tf = ChunkTransform(grid, req)
-    size = 40
+    size = header_size(out.format_version)
     for n, index in enumerate(todo):
         s = mesh_chunk(grid, tuple(int(x) for x in index), cells)
         if full and not len(s.triangles):

@@ -77,6 +77,13 @@ class LoopStats:
             self.latest = stats
         return stats
 
+    def forget_sessions(self) -> None:
+        """Drop the per-session statistics of a loop that was replaced (the next poll brings
+        the new one's); the counters stay until then."""
+        with self._lock:
+            if self.latest is not None:
+                self.latest = {**self.latest, "sessions": {}}
+
     def start(self) -> None:
         def run() -> None:
             while not self._stop.wait(POLL_INTERVAL_S):
@@ -130,7 +137,8 @@ class LoopStats:
         for sid, s in sorted(sessions.items()):
             label = str(sid)
             for name in ("accepted", "stale", "duplicate", "bad_value", "internal",
-                         "restarts", "velocity_resets", "teleports"):
+                         "hellos", "streams", "wrong_stream", "velocity_resets",
+                         "teleports"):
                 accepted.add_metric([label, name], s.get(name, 0))
             version.add_metric([label], s["bone_version"])
             for material, mm3 in s["removed_mm3"].items():

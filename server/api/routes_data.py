@@ -1,5 +1,5 @@
 """Bones and what comes out of sessions: phantoms, the library, uploads, load jobs, exports,
-brick deltas, snapshots and recordings."""
+brick deltas, snapshots and recordings, and the storage they take (``storage``)."""
 
 from __future__ import annotations
 
@@ -11,26 +11,37 @@ from pathlib import Path as FilePath
 from typing import Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
 
 from ...proto.bricks import encode_delta
 from ..bone import PHANTOMS
 from ..bone.deltas import MAX_BRICKS_LIMIT, brick_delta
 from ..bone.export import VOLUME_MEDIA_TYPES, write_volume
+from ..bone.loaders import save_bone
 from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
+from . import storage
+from .generation import bone_generation
 from .manager import ApiError, ControlPlane
 from .models import RecordingStart, RestoreRequest, SnapshotRequest
 from .routes_sessions import SessionPath, _plane, wait_for
-from .sources import snapshot_path
 
 router = APIRouter()
 UPLOAD_SUFFIX = re.compile(r"(\.bone\.npz|\.seg\.nrrd|\.nii\.gz|\.[A-Za-z0-9]{1,5})$")
 DELTA_MEDIA_TYPE = "application/x-msgpack"
+#: The burrforce bone file a volume export's ``format=bone`` writes (``save_bone``).
+BONE_MEDIA_TYPE = ("application/octet-stream", ".bone.npz")
+#: Response headers naming the bone state an export holds (an npy file cannot say it).
+GENERATION_HEADER = "X-Burrforce-Bone-Generation"
+VERSION_HEADER = "X-Burrforce-Bone-Version"
 
 
 # -- bones ------------------------------------------------------------------------------------
+DELETE_FORCE = ("delete it even though a session's bone came from it (the session keeps its "
+                "bone, but its reset, and resuming it after a crash or restart, will fail)")
+
 @router.get("/phantoms", tags=["bones"])
 def phantoms() -> list[dict]:
     """Built-in bones: ``phantom:NAME`` sources."""
@@ -66,6 +77,9 @@ async def upload(request: Request,
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise ApiError(413, f"the upload is {int(declared):,} bytes; the limit is {limit:,} "
                             "(serve's upload_max_mb)")
+    # Walking the data directory takes a while with many recordings: not on the event loop.
+    usage = await run_in_threadpool(storage.require_room, plane, "the upload", 413,
+                                    int(declared) if declared and declared.isdigit() else 0)
     upload_id = secrets.token_hex(8)
     final = plane.roots.uploads / (upload_id + match.group(1).lower())
     fd, tmp = tempfile.mkstemp(prefix=".upload-", dir=plane.roots.uploads)
@@ -77,6 +91,8 @@ async def upload(request: Request,
                 if size > limit:
                     raise ApiError(413, f"the upload exceeds the limit of {limit:,} bytes "
                                         "(serve's upload_max_mb)")
+                if not usage.fits(size):
+                    raise storage.over_budget(usage, "the upload", 413, size)
                 f.write(chunk)
         if size == 0:
             raise ApiError(422, "the upload is empty")
@@ -85,6 +101,42 @@ async def upload(request: Request,
         FilePath(tmp).unlink(missing_ok=True)
     return {"id": upload_id, "source": f"upload:{upload_id}", "bytes": size,
             "filename": FilePath(filename).name}
+
+
+UploadName = Path(description="the upload's id (``upload:ID`` without ``upload:``)")
+
+
+@router.get("/uploads", tags=["storage"])
+def uploads(request: Request) -> list[dict]:
+    """Uploaded bone files: ``id``, ``source``, ``file``, ``bytes``, ``created`` (Unix s) and
+    ``in_use_by`` (sessions whose bone came from it)."""
+    return storage.list_uploads(_plane(request))
+
+
+@router.get("/uploads/{name:path}", tags=["storage"], response_class=FileResponse)
+def download_upload(request: Request, name: str = UploadName) -> FileResponse:
+    """The uploaded file as it was sent."""
+    path = storage.upload_file(_plane(request), name)
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.delete("/uploads/{name:path}", tags=["storage"])
+def delete_upload(request: Request, name: str = UploadName,
+                  force: bool = Query(False, description=DELETE_FORCE)) -> dict:
+    """Delete an upload; 409 while a bone load reads it, and while a session's bone came
+    from it unless ``force`` (those sessions keep their bone; ``in_use_by`` and ``note``
+    say which, and that their reset and resume after a restart will fail)."""
+    return storage.delete_upload(_plane(request), name, force)
+
+
+@router.get("/storage", tags=["storage"])
+def storage_usage(request: Request) -> dict:
+    """The data directory's usage: ``bytes`` and ``items`` per kind (uploads, snapshots,
+    recordings, exports being served; the journal is shown but not ``counted``), the budget
+    (``budget_bytes``, 0: none; serve's ``--data-budget``), ``used_bytes``, ``reserved_bytes``
+    (room running recordings may still fill) and ``free_bytes``. A write that does not fit
+    is refused: an upload with 413, a snapshot, export or recording start with 507."""
+    return storage.report(_plane(request))
 
 
 @router.get("/jobs/{job_id}", tags=["bones"])
@@ -98,12 +150,21 @@ def job(request: Request, job_id: str = Path(pattern=r"^[0-9a-f]{16}$")) -> dict
 
 
 # -- exports ----------------------------------------------------------------------------------
-def _file_response(path: FilePath, media_type: str, filename: str) -> FileResponse:
-    return FileResponse(path, media_type=media_type, filename=filename,
+def _file_response(path: FilePath, media_type: str, filename: str,
+                   headers: dict[str, str] | None = None) -> FileResponse:
+    return FileResponse(path, media_type=media_type, filename=filename, headers=headers,
                         background=BackgroundTask(path.unlink, missing_ok=True))
 
 
+def _state_headers(generation: int | None, version: int) -> dict[str, str]:
+    out = {VERSION_HEADER: str(int(version))}
+    if generation is not None:
+        out[GENERATION_HEADER] = str(int(generation))
+    return out
+
+
 def _export_file(plane: ControlPlane, suffix: str) -> FilePath:
+    storage.require_room(plane, "an export")
     fd, name = tempfile.mkstemp(prefix="export-", suffix=suffix,
                                 dir=plane.data_dir / "exports")
     os.close(fd)
@@ -113,21 +174,42 @@ def _export_file(plane: ControlPlane, suffix: str) -> FilePath:
 @router.get("/sessions/{session_id}/export/volume", tags=["exports"],
             response_class=FileResponse)
 def export_volume(request: Request, session_id: int = SessionPath,
-                  format: Literal["nrrd", "npy"] = Query("nrrd"),
-                  what: Literal["remaining", "labels", "swept", "density"] = Query(
-                      "remaining", description="remaining bone 0–255 (carving applied), "
-                                               "labels, swept, or the original density")
+                  format: Literal["nrrd", "npy", "bone"] = Query(
+                      "nrrd", description="nrrd, npy (one array each), or bone: the whole "
+                                          "bone as a burrforce .bone.npz (density, carving, "
+                                          "labels and the material table), which loads "
+                                          "back as it was (upload it)"),
+                  what: Literal["remaining", "labels", "swept", "density"] | None = Query(
+                      None, description="nrrd and npy: remaining bone 0–255 (carving "
+                                        "applied, the default), labels, swept, or the "
+                                        "original density; bone holds them all")
                   ) -> FileResponse:
     """The carved volume as it is now (a consistent copy; the loop keeps running). NRRD
-    carries the geometry (LPS mm); npy is the bare uint8 array."""
+    carries the geometry (LPS mm); npy is the bare uint8 array; bone keeps everything,
+    materials included. The headers X-Burrforce-Bone-Generation and -Version say which bone
+    state it is (a client continues with deltas from them)."""
+    if format == "bone" and what is not None:
+        raise ApiError(422, "format=bone holds every array (density, swept, labels): leave "
+                            "what out")
+    what = what or "remaining"
     plane = _plane(request)
+    generation = bone_generation(plane.ready(session_id))  # before the bone: generation.py
     bone = plane.snapshot_bone(session_id)
+    headers = _state_headers(generation, bone.grid.version)
+    if format == "bone":
+        media, suffix = BONE_MEDIA_TYPE
+        path = _export_file(plane, suffix)
+        save_bone(bone, path, generation=generation)
+        storage.check_written(plane, path, "the export")
+        return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}"
+                                           f"{suffix}", headers)
     media, suffix = VOLUME_MEDIA_TYPES[format]
     path = _export_file(plane, suffix)
     with open(path, "wb") as f:
-        write_volume(bone.grid, f, format, what)
+        write_volume(bone.grid, f, format, what, generation=generation)
+    storage.check_written(plane, path, "the export")
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}-{what}"
-                                       f"{suffix}")
+                                       f"{suffix}", headers)
 
 
 @router.get("/sessions/{session_id}/export/mesh", tags=["exports"],
@@ -150,25 +232,35 @@ def export_mesh(request: Request, session_id: int = SessionPath,
     path = _export_file(plane, suffix)
     with open(path, "wb") as f:
         writer(mesh, f)
+    storage.check_written(plane, path, "the export")
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}{suffix}")
 
 
 @router.get("/sessions/{session_id}/deltas", tags=["exports"],
             responses={200: {"content": {DELTA_MEDIA_TYPE: {}}}})
 def deltas(request: Request, session_id: int = SessionPath,
-           since: int = Query(..., ge=0, description="the bone version the client has"),
+           since: int | None = Query(None, ge=0, description="the bone version the client "
+                                                             "has; omitted: every brick "
+                                                             "(full)"),
+           generation: int | None = Query(None, ge=0, le=(1 << 63) - 1,
+                                          description="the bone generation the client's "
+                                                      "copy is of; another one than the "
+                                                      "bone's: every brick (full)"),
            max_bricks: int = Query(4096, ge=1, le=MAX_BRICKS_LIMIT)) -> Response:
-    """The 8³ bricks changed since bone version ``since``, with their remaining density
-    (msgpack; format in ``burrforce.server.bone.deltas``), so an engine can update its own
-    mesh of the bone."""
+    """The 8³ bricks changed since bone version ``since`` of bone ``generation``, with their
+    remaining density (msgpack; format in ``burrforce.server.bone.deltas``), so an engine can
+    update its own mesh of the bone. A copy of another generation (the bone was reset,
+    reloaded or restored) gets a full answer: clear the copy and start over."""
     plane = _plane(request)
     session = plane.ready(session_id)
     if not session.features.deltas:
         raise ApiError(409, "the session has deltas off")
+    current = bone_generation(session)  # before the reader: generation.py
     reader = session.reader
     assert reader is not None
     try:
-        d = reader.read_published(lambda grid: brick_delta(grid, since, max_bricks))
+        d = reader.read_published(lambda grid: brick_delta(grid, since, max_bricks, current,
+                                                           generation))
     except ValueError as exc:
         raise ApiError(422, str(exc)) from None
     except TimeoutError as exc:
@@ -185,20 +277,30 @@ def snapshot(request: Request, body: SnapshotRequest | None = None,
     return _plane(request).save_snapshot(session_id, body.name if body else None)
 
 
-@router.get("/snapshots", tags=["snapshots"])
+SnapshotName = Path(description="the snapshot's name (``.bone.npz`` may be left off)")
+
+
+@router.get("/snapshots", tags=["snapshots", "storage"])
 def snapshots(request: Request) -> list[dict]:
-    return _plane(request).list_snapshots()
+    """Saved snapshots: ``name``, ``source``, ``bytes``, ``created`` (Unix s) and
+    ``in_use_by`` (sessions whose bone came from it)."""
+    return storage.list_snapshots(_plane(request))
 
 
-@router.get("/snapshots/{name}", tags=["snapshots"], response_class=FileResponse)
-def download_snapshot(request: Request,
-                      name: str = Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
-                      ) -> FileResponse:
-    plane = _plane(request)
-    path = snapshot_path(plane.roots.snapshots, name)
-    if not path.is_file():
-        raise ApiError(404, f"no snapshot {name!r}")
+@router.get("/snapshots/{name:path}", tags=["snapshots", "storage"],
+            response_class=FileResponse)
+def download_snapshot(request: Request, name: str = SnapshotName) -> FileResponse:
+    """The snapshot's ``.bone.npz`` file."""
+    path = storage.snapshot_file(_plane(request), name)
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.delete("/snapshots/{name:path}", tags=["snapshots", "storage"])
+def delete_snapshot(request: Request, name: str = SnapshotName,
+                    force: bool = Query(False, description=DELETE_FORCE)) -> dict:
+    """Delete a snapshot; 409 while a restore or load reads it, and while a session's bone
+    came from it unless ``force`` (as for uploads)."""
+    return storage.delete_snapshot(_plane(request), name, force)
 
 
 @router.post("/sessions/{session_id}/restore", status_code=202, tags=["snapshots"])
@@ -236,6 +338,37 @@ def stop_recording(request: Request, session_id: int = SessionPath) -> dict:
     return _plane(request).stop_recording(session_id)
 
 
-@router.get("/recordings", tags=["recordings"])
+RecordingName = Path(description="the recording's name (``.burrrec`` may be left off)")
+
+
+@router.get("/recordings", tags=["recordings", "storage"])
 def recordings(request: Request) -> list[dict]:
-    return _plane(request).list_recordings()
+    """Recordings: ``name``, ``bytes``, ``files``, ``created``, ``modified`` (Unix s),
+    ``complete`` (it has its summary), ``recording_session`` (the session writing it, or
+    null) and the ``replay`` command."""
+    return storage.list_recordings(_plane(request))
+
+
+@router.get("/recordings/{name:path}", tags=["recordings", "storage"],
+            response_class=StreamingResponse,
+            responses={200: {"description": "the recording's directory as one uncompressed "
+                                            "tar archive (members ``NAME.burrrec/...``; "
+                                            "``tar xf`` it, then ``burrforce replay``)",
+                             "content": {storage.TAR_MEDIA_TYPE: {"schema": {
+                                 "type": "string", "format": "binary"}}}},
+                       409: {"description": "a session is still writing it"}})
+def download_recording(request: Request, name: str = RecordingName) -> StreamingResponse:
+    """A recording (a ``.burrrec`` directory) as one **tar** archive, streamed: its rows
+    hardly compress, and a tar's length is known before it is sent. 409 while a session
+    writes it: stop that recording first."""
+    archive = storage.recording_archive(_plane(request), name)
+    return StreamingResponse(archive.chunks(), media_type=storage.TAR_MEDIA_TYPE, headers={
+        "Content-Length": str(archive.size_bytes),
+        "Content-Disposition": f'attachment; filename="{archive.filename}"'})
+
+
+@router.delete("/recordings/{name:path}", tags=["recordings", "storage"])
+def delete_recording(request: Request, name: str = RecordingName) -> dict:
+    """Delete a recording; 409 while a session writes it (stop it first with ``DELETE
+    /v1/sessions/ID/recording``)."""
+    return storage.delete_recording(_plane(request), name)

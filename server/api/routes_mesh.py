@@ -13,8 +13,9 @@ from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
-from ...proto.mesh_chunks import MEDIA_TYPE, encode
+from ...proto.mesh_chunks import FORMAT_VERSION, MEDIA_TYPE, encode
 from ..bone.chunks import CHUNK_BRICKS_DEFAULT, CHUNK_BRICKS_MAX
+from .generation import bone_generation
 from .manager import ApiError, ControlPlane, ManagedSession
 from .mesh_pages import (
     MAX_BYTES_DEFAULT,
@@ -37,6 +38,12 @@ FrameQuery = Query("session", description="session: the session's engine frame a
                                           "server: the server frame, mm")
 WindingQuery = Query("ccw", description="ccw: the right-handed cross product of a triangle's "
                                         "edges points out of the bone; cw: into it")
+GenerationQuery = Query(None, ge=0, le=(1 << 63) - 1,
+                        description="the bone generation your chunks are of (version 2 "
+                                    "messages carry it); another one than the bone's: every "
+                                    "chunk, FULL")
+FormatQuery = Query(1, ge=1, le=FORMAT_VERSION,
+                    description="the message format: 1, or 2 (with the bone generation)")
 
 
 def _plane(request: Request | WebSocket) -> ControlPlane:
@@ -64,21 +71,29 @@ def mesh(request: Request, session_id: int = SessionPath,
                                                            "are at; omitted: every chunk"),
          chunk_bricks: int = ChunkBricks, frame: Frame = FrameQuery,
          winding: Winding = WindingQuery,
+         generation: int | None = GenerationQuery,
+         format_version: int = FormatQuery,
          cursor: int = Query(0, ge=0, le=(1 << 32) - 1,
                              description="the previous page's next_cursor"),
          max_bytes: int = Query(MAX_BYTES_DEFAULT, ge=MAX_BYTES_MIN, le=MAX_BYTES_MAX,
                                 description="a page's size budget, bytes")) -> Response:
     """The carved bone's surface as chunk meshes changed since bone version ``since`` (one
-    page: follow ``next_cursor`` while the MORE flag is set). Binary, little-endian: the
-    format is in proto/MESH.md. The WebSocket ``/v1/sessions/{id}/mesh/ws`` (same query,
-    plus ``interval_ms``; the token also as ``?token=``) pushes the same messages as the bone
-    changes."""
+    page: follow ``next_cursor`` while the MORE flag is set, with the same query). Binary,
+    little-endian: the format is in proto/MESH.md. Chunks of another bone ``generation``
+    (the bone was reset, reloaded or restored) are all replaced: a FULL answer. The WebSocket
+    ``/v1/sessions/{id}/mesh/ws`` (same query, plus ``interval_ms``; the token also as
+    ``?token=``) pushes the same messages as the bone changes."""
     session = _meshable(_plane(request), session_id)
     req = _request(session, chunk_bricks, frame, winding)
+    current = bone_generation(session)  # before the reader: generation.py
+    if generation is not None and generation != current:
+        since = None
+    stamp = current if format_version >= 2 else None
     reader = session.reader
     assert reader is not None
     try:
-        page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes))
+        page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes,
+                                                         stamp))
     except TimeoutError as exc:
         raise ApiError(503, str(exc)) from None
     except ValueError as exc:
@@ -109,6 +124,8 @@ class WsQuery:
     winding: str
     interval_ms: int
     token: str | None
+    generation: int | None = None
+    format_version: int = 1
 
     @classmethod
     def parse(cls, q) -> WsQuery:
@@ -134,14 +151,18 @@ class WsQuery:
                    integer("chunk_bricks", CHUNK_BRICKS_DEFAULT, 1, CHUNK_BRICKS_MAX),
                    choice("frame", "session", ("session", "server")),
                    choice("winding", "ccw", ("ccw", "cw")),
-                   integer("interval_ms", 33, 10, 1000), q.get("token"))
+                   integer("interval_ms", 33, 10, 1000), q.get("token"),
+                   integer("generation", None, 0, (1 << 63) - 1),
+                   integer("format_version", 1, 1, FORMAT_VERSION))
 
 
 @ws_router.websocket("/sessions/{session_id}/mesh/ws")
 async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes mesh-chunk messages (proto/MESH.md): everything changed since ``since`` at
-    once, then each change, at most every ``interval_ms``. Query: since, chunk_bricks, frame,
-    winding, interval_ms, token (or the Authorization header)."""
+    once (everything, FULL, when ``generation`` is not the bone's), then each change, at most
+    every ``interval_ms``, and everything again when the bone is replaced. Query: since,
+    generation, format_version, chunk_bricks, frame, winding, interval_ms, token (or the
+    Authorization header)."""
     # Accepted first: a close before the handshake reaches the client as a bare HTTP 403,
     # without the code and reason that say what was wrong.
     await ws.accept()
@@ -179,7 +200,10 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
 
     watcher = asyncio.create_task(watch())
     req = _request(session, chunk_bricks, frame, winding)
+    generation = bone_generation(session)  # before the reader: generation.py
     reader = session.reader
+    if query.generation is not None and query.generation != generation:
+        since = None
     sent_for: int | None = None  # the bone version the client was last brought up to
     loop = asyncio.get_running_loop()
     try:
@@ -190,18 +214,21 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
                 await ws.close(1001, f"session {session.id} is gone")
                 return
             fresh = _request(current, chunk_bricks, frame, winding)
-            if current.reader is not reader or fresh != req:
+            now_generation = bone_generation(current)  # before the reader: generation.py
+            if current.reader is not reader or fresh != req or now_generation != generation:
                 # A new bone, or a new frame or placement (every coordinate moves): start
                 # over with every chunk.
                 reader, req, since, sent_for = current.reader, fresh, None, None
+                generation = now_generation
+            stamp = generation if query.format_version >= 2 else None
             version = await run_in_threadpool(reader.read_published, lambda g: int(g.version))
             if version != sent_for:
                 low, cursor = None, 0
                 while True:
                     page = await run_in_threadpool(
                         reader.read_published,
-                        lambda g, r=req, n=since, c=cursor: mesh_page(g, r, n, c,
-                                                                      MAX_BYTES_DEFAULT))
+                        lambda g, r=req, n=since, c=cursor, s=stamp: mesh_page(
+                            g, r, n, c, MAX_BYTES_DEFAULT, s))
                     await ws.send_bytes(encode(page))
                     low = page.bone_version if low is None else min(low, page.bone_version)
                     if not page.more:

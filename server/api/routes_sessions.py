@@ -96,6 +96,9 @@ def create_session(body: SessionCreate, request: Request, response: Response,
     wait_for(plane, job.id, wait)
     if session.state == "failed":
         plane.delete_session(session.id)
+        if job.status == 503:  # the server's trouble (a hot-loop restart), not the bone's
+            raise ApiError(503, f"the session could not be started, try again: "
+                                f"{session.error}")
         raise ApiError(422, f"the bone could not be loaded: {session.error}")
     if session.state != "ready":
         response.status_code = 202
@@ -137,7 +140,9 @@ def reset_session(request: Request, session_id: int = SessionPath,
 
 @router.post("/sessions/{session_id}/restart-stream", status_code=204)
 def restart_stream(request: Request, session_id: int = SessionPath) -> Response:
-    """Forget the stream's sequence and velocity: any next datagram starts a new stream."""
+    """End the session's stream: its next POSE is answered WRONG_STREAM, and the client says
+    hello for a new one (SPEC 5.2). A v2 client never needs it to recover; it is for an
+    operator who wants a stream cut off."""
     _plane(request).restart_stream(session_id)
     return Response(status_code=204)
 

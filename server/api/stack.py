@@ -8,19 +8,33 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from collections.abc import Callable
 
 import uvicorn
 
+from ..hotloop import HotLoopProcess
 from .app import create_app
 from .config import ServeConfig
+from .journal import Journal, resume
 from .manager import ControlPlane, ManagedSession, start_hot_loop
 from .metrics import LoopStats
 from .models import Features, Parameters
 from .sources import BoneSource
+from .supervisor import Supervisor
 
 START_TIMEOUT_S = 600.0
+log = logging.getLogger("burrforce.api")
+
+
+def _stream(stats: LoopStats, session_id: int) -> int | None:
+    """The next stream number the hot loop last reported for a session (never 0, past every
+    number it handed out; None: not reported yet)."""
+    latest = stats.latest or {}
+    stream = latest.get("sessions", {}).get(session_id, {}).get("next_stream")
+    return int(stream) if stream else None
 
 
 class ServerStack:
@@ -31,25 +45,44 @@ class ServerStack:
         token: the REST bearer token.
     """
 
-    def __init__(self, config: ServeConfig, token: str) -> None:
+    def __init__(self, config: ServeConfig, token: str,
+                 say: Callable[[str], None] | None = None, journal: bool = True) -> None:
         self.config = config
         self.token = token
-        self.hot = None
+        self.say = say
+        self.use_journal = journal
+        self.journal: Journal | None = None
+        #: Sessions ``start_backend`` resumed from the journal.
+        self.resumed: list[int] = []
         self.plane: ControlPlane | None = None
         self.stats: LoopStats | None = None
+        self.supervisor: Supervisor | None = None
         self.server: uvicorn.Server | None = None
         self._thread: threading.Thread | None = None
 
     def start_backend(self) -> None:
-        """The hot loop, the control plane and the statistics poller (no HTTP yet)."""
-        self.hot = start_hot_loop(self.config)
+        """The hot loop, the control plane, the statistics poller, the supervisor and the
+        journal, after resuming the journaled sessions (no HTTP yet)."""
+        hot = start_hot_loop(self.config)
         try:
-            self.plane = ControlPlane(self.config, self.hot)
-            hot = self.hot
-            self.stats = LoopStats(lambda since: hot.call("stats", tick_times_since=since))
+            self.plane = plane = ControlPlane(self.config, hot)
+        except BaseException:
+            hot.stop()
+            raise
+        try:
+            # Through the plane: the supervisor replaces its loop after a crash.
+            self.stats = LoopStats(lambda since: plane.hot.call("stats",
+                                                                tick_times_since=since))
             self.stats.poll()
             self.stats.start()
-            app = create_app(self.plane, self.token, self.stats)
+            self.supervisor = Supervisor(plane, self.stats, self.say)
+            self.supervisor.start()
+            if self.use_journal:
+                stats = self.stats
+                self.journal = Journal(plane, lambda sid: _stream(stats, sid))
+                self.resumed = resume(plane, self.journal, self.say or log.info)
+                self.journal.start()
+            app = create_app(plane, self.token, self.stats, self.supervisor)
             self.server = uvicorn.Server(uvicorn.Config(
                 app, host=self.config.host, port=self.config.http_port, log_level="warning",
                 access_log=False, timeout_graceful_shutdown=5))
@@ -100,6 +133,11 @@ class ServerStack:
         return f"http://{host}:{self.http_port}"
 
     @property
+    def hot(self) -> HotLoopProcess | None:
+        """The running hot loop (a new one after a restart)."""
+        return self.plane.hot if self.plane is not None else None
+
+    @property
     def udp_address(self) -> tuple[str, int]:
         assert self.hot is not None and self.hot.address is not None
         return self.hot.address
@@ -111,15 +149,18 @@ class ServerStack:
         if self._thread is not None:
             self._thread.join(10.0)
             self._thread = None
+        if self.supervisor is not None:  # first: stopping the loop is not a crash
+            self.supervisor.stop()
+        if self.journal is not None:  # a last pass, while the sessions are still there
+            self.journal.stop()
         if self.stats is not None:
             self.stats.stop()
         if self.plane is not None:
             self.plane.close()
-        if self.hot is not None:
-            self.hot.stop()
+            self.plane.hot.stop()
 
     def __enter__(self) -> ServerStack:
-        if self.hot is None:
+        if self.plane is None:
             self.start_backend()
             self.serve_in_thread()
         return self

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ...proto.codec import decode_server_message, encode_pose
-from ...proto.messages import FLAG_NEW_STREAM, FLAG_RESET_VELOCITY, STATUS_CUTTING, Pose
+from ...proto.messages import FLAG_RESET_VELOCITY, NEW_STREAM, STATUS_CUTTING, Notice, Pose
 from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
 from .timing import machine_line
@@ -57,6 +57,8 @@ ROWS_Y_MM = (-6.0, -2.0, 2.0, 6.0)
 ROW_X_MM = (-2.5, 28.5)  # from outside the block (x 0–26) to outside it again
 REPLY_TIMEOUT_S = 0.25
 CHUNK = 500
+#: Hellos sent (each waits REPLY_TIMEOUT_S) before the server counts as not answering.
+HELLO_TRIES = 8
 
 
 @dataclass(frozen=True)
@@ -119,12 +121,35 @@ class _Client:
         self.tagger = Tagger(key) if key is not None else None
         self.cut = cut
         self.seq = 1
+        self.stream = 0  # the server's stream for this client (SPEC 5.2), 0 before the hello
         self.echo_payload = bytes(110)  # the size of a POSE
         self.rtt_us: list[float] = []
         self.cutting: list[bool] = []
         self.lost = 0
 
+    def _open_stream(self) -> None:
+        """The stream handshake, untimed: a hello, the server's NEW_STREAM notice."""
+        for _ in range(HELLO_TRIES):
+            seq = self.seq
+            self.seq += 1
+            hello = Pose(self.session, seq, time.monotonic_ns() // 1000, (12.0, 0.0, 20.0),  # type: ignore[arg-type]
+                         (0.0, 0.0, 0.0, 1.0), RPM, True)
+            self.sock.send(encode_pose(hello, self.tagger))
+            try:
+                while True:
+                    data = self.sock.recv(2048)
+                    m = decode_server_message(data)
+                    if (isinstance(m, Notice) and m.error == NEW_STREAM and m.seq == seq
+                            and (self.tagger is None or self.tagger.verify(data))):
+                        self.stream = m.stream
+                        return
+            except TimeoutError:
+                continue
+        raise RuntimeError(f"session {self.session} never answered a hello")
+
     def chunk(self, n: int, period_s: float | None) -> None:
+        if self.session is not None and self.stream == 0:
+            self._open_stream()
         clock = time.monotonic_ns
         due = time.perf_counter()
         for i in range(n):
@@ -154,7 +179,7 @@ class _Client:
     def _datagram(self, t_us: int, new_chunk: bool) -> bytes:
         seq = self.seq
         self.seq += 1
-        flags = FLAG_NEW_STREAM if seq == 1 else 0
+        flags = 0
         if self.cut is None:
             position = (12.0, 0.0, 20.0)
             orientation = (0.0, 0.0, 0.0, 1.0)
@@ -163,7 +188,7 @@ class _Client:
             flags |= extra
             orientation = self.cut.orientation
         return encode_pose(Pose(self.session, seq, t_us, position, orientation, RPM, True,  # type: ignore[arg-type]
-                                None, flags), self.tagger)
+                                None, flags, self.stream), self.tagger)
 
     def _is_reply(self, data: bytes) -> bool:
         """The reply to the packet just sent (a late one from a timed-out packet is not)."""

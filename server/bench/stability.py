@@ -31,8 +31,8 @@ The loop (``stability_sim``):
   arrival, and the jitter on each sample interval (dt + U(−j, j)); loss of requests and,
   independently, of replies; duplicates (the datagram sent twice: the server drops the copy);
   reordering (a datagram held and sent after the next one: the server answers only the
-  newer). Seeded per run (``run_seed``). The client sets FLAG_NEW_STREAM until its first reply
-  arrives (SPEC 5.2).
+  newer). Seeded per run (``run_seed``). The client says hello until the server's NEW_STREAM
+  notice arrives, then streams in the stream it was given (SPEC 5.2).
 - **Events**: ``teleport`` (the target jumps 30 mm up at 0.6 s and back down at 0.8 s),
   ``nan`` (a 20 ms burst of NaN poses at 0.5 s and two single ones: the server answers
   BAD_VALUE), ``inside`` (the burr starts fully embedded, centre 3 mm deep), ``inside_rigid``

@@ -19,7 +19,15 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from ...proto.codec import decode_server_message, encode_pose
-from ...proto.messages import FLAG_NEW_STREAM, OK, STATUS_CLAMPED, STATUS_CUTTING, Pose, Reply
+from ...proto.messages import (
+    NEW_STREAM,
+    OK,
+    STATUS_CLAMPED,
+    STATUS_CUTTING,
+    Notice,
+    Pose,
+    Reply,
+)
 from ...proto.tag import Tagger
 from ..devices.render import CouplingRenderer
 from ..devices.sim import SimMechanism
@@ -303,7 +311,13 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
     # The server's output stream, for the slew check (bench.stability docstring).
     ref_force = (0.0, 0.0, 0.0)
     ref_good_t_us: int | None = None
-    new_stream_seqs: set[int] = set()  # POSEs sent with FLAG_NEW_STREAM
+    # The stream handshake (SPEC 5.2): hellos until the server's NEW_STREAM notice arrives
+    # (simulated time); the POSEs of the stream sent before its first reply arrived may each
+    # be the one that opens it on the server (loss, reordering), its tick restarting the
+    # haptic stage.
+    stream = 0
+    offer: tuple[float, int] | None = None  # (arrival, stream) of the first NEW_STREAM
+    new_stream_seqs: set[int] = set()
     seq = 1
     t_us = 0
     held: tuple[int, bytes, float] | None = None  # a datagram held back (reordering)
@@ -420,10 +434,11 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
             counts["nan_poses"] += 1
         else:
             position = mech.reading()
-        flags = FLAG_NEW_STREAM if first_arrival > t_sample else 0
-        data = encode_pose(Pose(session_id, seq, t_us, position, q, rpm, spindle_on, None,
-                                flags), link.tagger)
-        if flags:
+        if stream == 0 and offer is not None and offer[0] <= t_sample:
+            stream = offer[1]
+        data = encode_pose(Pose(session_id, seq, t_us, position, q, rpm, spindle_on, None, 0,
+                                stream), link.tagger)
+        if stream != 0 and first_arrival > t_sample:
             new_stream_seqs.add(seq)
         this = (seq, data, t_sample)
         seq += 1
@@ -453,11 +468,17 @@ def simulate(link: Link, session_id: int, profile: DeviceProfile, mode: str, sc:
             msgs, missing = [], 0
         counts["timeouts"] += missing
         for msg in sorted(msgs, key=lambda m: m.seq):
-            check(msg)
+            handshake = isinstance(msg, Notice) and msg.error == NEW_STREAM
+            if not handshake:  # a hello's answer is no output of the server's
+                check(msg)
             if sc.loss > 0.0 and rng.random() < sc.loss:
                 counts["lost_replies"] += 1
                 continue
             arrival = t_sample + delay + (rng.uniform(0.0, jitter) if jitter > 0 else 0.0)
+            if handshake:
+                if offer is None or arrival < offer[0]:
+                    offer = (arrival, msg.stream)
+                continue  # a hello's answer: no force, nothing to render or drop
             first_arrival = min(first_arrival, arrival)
             good = isinstance(msg, Reply) and msg.error == OK
             pending.append((arrival, msg.seq, msg if good else None))

@@ -8,6 +8,7 @@ empty; one with ``full`` equal to its voxel count is full; anything else is mixe
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 BRICK_SHIFT = 3
@@ -82,3 +83,44 @@ def forbidden_bricks(density, labels, forbidden, out):
             for k in range(nz):
                 if density[i, j, k] != 0 and forbidden[labels[i, j, k]] != 0:
                     out[i >> BRICK_SHIFT, j >> BRICK_SHIFT, k >> BRICK_SHIFT] = 1
+
+
+#: uint64 words per brick in a label mask: one bit per label (``materials.N_LABELS`` = 256).
+LABEL_WORDS = 4
+
+
+@njit(cache=True, nogil=True)
+def brick_labels(density, labels, out):
+    """``out`` (uint64, brick shape + (LABEL_WORDS,)): bit ``l`` set where the brick holds a
+    voxel with bone (density > 0) labelled ``l``. Kept in a shared bone's file so a session's
+    forbidden bricks, for any material table, cost a pass over the bricks, not the voxels."""
+    out[:] = 0
+    nx, ny, nz = density.shape
+    for i in range(nx):
+        bi = i >> BRICK_SHIFT
+        for j in range(ny):
+            bj = j >> BRICK_SHIFT
+            for k in range(nz):
+                if density[i, j, k] != 0:
+                    label = labels[i, j, k]
+                    out[bi, bj, k >> BRICK_SHIFT, label >> 6] |= np.uint64(1) << np.uint64(
+                        label & 63)
+
+
+@njit(cache=True, nogil=True)
+def forbidden_from_labels(label_mask, forbidden, out):
+    """``forbidden_bricks`` from a brick label mask (``brick_labels``): same result, bricks
+    only."""
+    words = np.zeros(LABEL_WORDS, dtype=np.uint64)
+    for label in range(forbidden.shape[0]):
+        if forbidden[label] != 0:
+            words[label >> 6] |= np.uint64(1) << np.uint64(label & 63)
+    nbx, nby, nbz, nw = label_mask.shape
+    for bi in range(nbx):
+        for bj in range(nby):
+            for bk in range(nbz):
+                hit = 0
+                for w in range(nw):
+                    if label_mask[bi, bj, bk, w] & words[w] != 0:
+                        hit = 1
+                out[bi, bj, bk] = hit

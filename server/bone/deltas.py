@@ -11,24 +11,44 @@ removed bone; each brick remembers the version that last changed it.
 
 Getting started
 ---------------
-Either fetch the whole remaining volume (``write_volume(grid, f, "npy" | "nrrd")``; a NRRD
-file carries ``burrforce_bone_version:=N``, and an HTTP layer should report the version it
-read *before* writing) and continue from that version, or start from the bone's original
-density at version 0: an untouched brick's remaining density equals its original density,
-so the original file plus ``brick_delta(grid, 0)`` reproduces the current bone.
+Ask without ``since_version`` (``brick_delta(grid, None)``): a *full* answer, every brick
+that holds bone, on a copy set to 0. Or fetch the whole remaining volume
+(``write_volume(grid, f, "npy" | "nrrd")``; a NRRD file carries ``burrforce_bone_version:=N``
+and ``burrforce_bone_generation:=G``, and an HTTP layer should report the version it read
+*before* writing) and continue from that version, or start from the bone's original density
+at version 0: an untouched brick's remaining density equals its original density, so the
+original file plus ``brick_delta(grid, 0)`` reproduces the current bone.
+
+Generations: when the bone is replaced, start over
+--------------------------------------------------
+Bone versions restart at 0 whenever a session's bone is replaced (a new load, a reset, a
+restore of a snapshot), so a version alone does not say which bone a copy is of. The server
+numbers each bone it loads with a *generation* (``server/api/generation.py``: never repeated
+while its data directory lives) and sends it in every message (``generation``). A client
+keeps (generation, version) and asks with both (``generation=G&since=N`` over REST). When G
+is not the bone's generation any more the server ignores N and answers in full (``full``
+true): the client sets its whole copy to 0, reallocated to ``grid_shape`` if that changed
+(another bone may have another grid), applies the bricks, and from then on keeps the
+message's ``generation``. A client that does not send its generation gets what it did before
+generations existed (and a 422 when N is newer than the bone, its only hint of a new bone).
 
 The message
 -----------
 One msgpack map (``burrforce.proto.bricks.encode_delta``) with string keys; numbers are
-msgpack ints, float64 and booleans, byte strings are msgpack ``bin``:
+msgpack ints, float64 and booleans, byte strings are msgpack ``bin``. Readers ignore keys
+they do not know (``generation`` and ``full`` came later, within format version 1):
 
 =================  ============  ==========================================================
 key                type          meaning
 =================  ============  ==========================================================
 ``format``         str           ``"burrforce-bricks"``
 ``format_version`` int           1
+``generation``     int or nil    the bone's generation (nil: the server does not know it)
+``full``           bool          the client's copy is not of this bone, or it asked without
+                                 ``since_version``: set the copy to 0 (of ``grid_shape``)
+                                 before applying; every brick with bone follows (paged)
 ``bone_version``   int           the bone's version when the delta was made
-``since_version``  int           the version asked for
+``since_version``  int or nil    the version asked for (nil: not given)
 ``next_since``     int or nil    the version the client's copy is at once this delta is
                                  applied: ask for ``since_version = next_since`` next time.
                                  nil together with ``reload``.
@@ -73,6 +93,10 @@ is waiting) and gets every brick changed after that, including any changed again
 One version is never split across messages, so if a single tick changed more than
 ``max_bricks`` bricks (a burr far larger than usual, or a tiny ``max_bricks``) no safe cut
 exists: the reply has ``reload`` true, no bricks, and the client fetches the whole volume.
+A full answer pages the same way (its bricks by the version that last changed them, the
+never-carved ones at version 0 first; the pages after the first are ordinary deltas of the
+new generation), so a bone with more than ``max_bricks`` never-carved bricks holding bone
+gets ``reload``: fetch the whole volume (its generation and version come with it).
 
 Concurrency
 -----------
@@ -98,19 +122,29 @@ MAX_BRICKS_LIMIT = 1 << 16
 assert BRICK ** 3 == BRICK_VOXELS, "the wire format's brick is the grid's brick"
 
 
-def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> dict[str, Any]:
-    """The bricks whose bone changed after ``since_version``, as a plain dict.
+def brick_delta(grid: BoneGrid, since_version: int | None, max_bricks: int = 4096,
+                generation: int | None = None,
+                client_generation: int | None = None) -> dict[str, Any]:
+    """The bricks whose bone changed after ``since_version``, as a plain dict; every brick
+    with bone (``full``) when the client has no copy of this bone.
 
     Parameters
     ----------
     grid : BoneGrid
         The bone (read, never written).
-    since_version : int
-        The bone version the client's copy is at, 0..``grid.version``.
+    since_version : int or None
+        The bone version the client's copy is at, 0..``grid.version``; None: the client has
+        no copy (a full answer).
     max_bricks : int
         The most bricks to send (1..65 536; 512 bytes of densities each). When more
         changed, the delta holds the oldest changes and ``complete`` is False (see the
         module's "Paging").
+    generation : int or None
+        The bone's generation (the server's; None: unknown), sent back in the message.
+    client_generation : int or None
+        The generation the client's copy is of (None: the client did not say, and
+        ``since_version`` is trusted to be of this bone). When it is not ``generation`` the
+        copy is of another bone: a full answer, whatever ``since_version`` is.
 
     Returns
     -------
@@ -122,27 +156,29 @@ def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> d
     Raises
     ------
     ValueError
-        ``since_version`` not an integer in 0..``grid.version``, or ``max_bricks`` not in
-        1..65 536.
+        ``since_version`` not None or an integer in 0..``grid.version`` (newer is accepted
+        when the answer is full anyway), or ``max_bricks`` not in 1..65 536.
     """
     bone_version = int(grid.version)  # before the stamps: see "Concurrency"
-    if isinstance(since_version, bool) or not isinstance(since_version, (int, np.integer)):
-        raise ValueError(f"since_version must be an integer bone version, got "
-                         f"{since_version!r}")
-    since = int(since_version)
-    if since < 0:
-        raise ValueError(f"since_version must be ≥ 0 (bone versions start at 0), got {since}")
-    if since > bone_version:
+    full = since_version is None or (client_generation is not None
+                                     and client_generation != generation)
+    since = None if since_version is None else _since(since_version)
+    if not full and since > bone_version:
         raise ValueError(f"since_version {since} is newer than the bone (version "
                          f"{bone_version}): the bone was reloaded or reset, or the version "
-                         "belongs to another bone; fetch the whole volume")
+                         "belongs to another bone; pass the generation your copy is of, or "
+                         "ask without since_version for every brick")
     if isinstance(max_bricks, bool) or not isinstance(max_bricks, (int, np.integer)) \
             or not 1 <= int(max_bricks) <= MAX_BRICKS_LIMIT:
         raise ValueError(f"max_bricks must be an integer in 1..{MAX_BRICKS_LIMIT}, got "
                          f"{max_bricks!r}")
     max_bricks = int(max_bricks)
     versions = grid.brick_version.copy()  # one snapshot: a tick may stamp bricks meanwhile
-    changed = (versions > since) & (versions <= bone_version)
+    if full:
+        # Bricks that never held bone are 0 in the client's cleared copy already.
+        changed = bricks_with_bone(grid.density) & (versions <= bone_version)
+    else:
+        changed = (versions > since) & (versions <= bone_version)
     index = np.argwhere(changed)  # C order
     order = np.argsort(versions[changed], kind="stable")  # by version, then C order
     index = index[order]
@@ -163,6 +199,8 @@ def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> d
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
+        "generation": None if generation is None else int(generation),
+        "full": full,
         "bone_version": bone_version,
         "since_version": since,
         "next_since": next_since,
@@ -178,6 +216,25 @@ def brick_delta(grid: BoneGrid, since_version: int, max_bricks: int = 4096) -> d
         "bricks": index.astype("<i4").tobytes(),
         "remaining": brick_remaining(grid, index).tobytes(),
     }
+
+
+def _since(since_version: object) -> int:
+    if isinstance(since_version, bool) or not isinstance(since_version, (int, np.integer)):
+        raise ValueError(f"since_version must be an integer bone version, got "
+                         f"{since_version!r}")
+    if since_version < 0:
+        raise ValueError(f"since_version must be ≥ 0 (bone versions start at 0), got "
+                         f"{since_version}")
+    return int(since_version)
+
+
+def bricks_with_bone(density: np.ndarray) -> np.ndarray:
+    """bool, brick shape: the bricks with any voxel of original density > 0 (only those can
+    hold bone, since carving only removes it)."""
+    m = density
+    for axis, n in enumerate(density.shape):
+        m = np.maximum.reduceat(m, np.arange(0, n, BRICK), axis=axis)
+    return m > 0
 
 
 def _brick_voxels(shape: tuple[int, int, int], index: np.ndarray):
@@ -209,7 +266,8 @@ def apply_delta(volume: np.ndarray, d: dict[str, Any]) -> int | None:
     Parameters
     ----------
     volume : np.ndarray
-        uint8 (nx, ny, nz) remaining density, C-contiguous, updated in place.
+        uint8 (nx, ny, nz) remaining density, C-contiguous, updated in place (set to 0
+        first when ``d["full"]``; reallocate it to ``grid_shape`` before if that changed).
     d : dict
         From ``proto.bricks.decode_delta`` (or :func:`brick_delta`: byte fields are accepted too).
 
@@ -237,6 +295,8 @@ def apply_delta(volume: np.ndarray, d: dict[str, Any]) -> int | None:
     remaining = np.asarray(remaining).reshape(-1, BRICK, BRICK, BRICK)
     if len(bricks) != len(remaining):
         raise ValueError("bricks and remaining disagree in count")
+    if d.get("full"):
+        volume[...] = 0  # a copy of another bone, or none: nothing of it may survive
     if len(bricks):
         limit = -(-np.asarray(shape) // BRICK)
         if (bricks < 0).any() or (bricks >= limit).any():

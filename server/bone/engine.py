@@ -25,10 +25,11 @@ from ..model.kernels import (
     new_scratch,
 )
 from ..model.params import CuttingParams
-from .bricks import forbidden_bricks
+from .bricks import BRICK, LABEL_WORDS, forbidden_bricks, forbidden_from_labels
 from .carve import N_TOUCH, TOUCH_FORBIDDEN
 from .grid import BoneGrid, check_voxel_size
 from .materials import N_LABELS, MaterialTable
+from .seqlock import header_address, read_version, write_begin, write_end
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from .tick import bone_tick
 from .voxels import coverage_cache_shape
@@ -39,6 +40,30 @@ from .voxels import coverage_cache_shape
 VOXEL_REFINE = 2
 #: 16 M entries (128 MB) — a burr 100 voxels across.
 MAX_CACHE_ENTRIES = 1 << 24
+
+_kernels_loaded = False
+
+
+def load_kernels() -> None:
+    """Load (or compile) the kernels an engine runs besides its tick — both forbidden-brick
+    scans and a shared bone's seqlock writes — on tiny arrays, once per process. The first
+    engine does it: the hot loop builds that one before any session streams, so no later
+    build holds the GIL for milliseconds loading machine code while another session streams
+    (measured: 16–22 ms holds when a shared bone's kernels were first loaded beside a
+    streaming session)."""
+    global _kernels_loaded
+    if _kernels_loaded:
+        return
+    density = np.ones((BRICK, BRICK, BRICK), dtype=np.uint8)
+    forbidden = np.zeros(N_LABELS, dtype=np.uint8)
+    out = np.zeros((1, 1, 1), dtype=np.uint8)
+    forbidden_bricks(density, density, forbidden, out)
+    forbidden_from_labels(np.zeros((1, 1, 1, LABEL_WORDS), dtype=np.uint64), forbidden, out)
+    header = np.zeros(8, dtype=np.int64)
+    write_begin(header_address(header))
+    write_end(header_address(header), 0)
+    read_version(header)  # mapping a shared bone reads its version
+    _kernels_loaded = True
 
 
 @dataclass(frozen=True)
@@ -144,6 +169,7 @@ class BoneEngine:
         refine: int = VOXEL_REFINE,
         max_events: int = 10_000,
     ) -> None:
+        load_kernels()
         self.grid = grid
         self.materials = materials if materials is not None else MaterialTable()
         self.shaft = shaft if shaft is not None else ShaftParams()
@@ -170,6 +196,11 @@ class BoneEngine:
         self._stamp = 0
         self._brick_forbidden = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
         self._forbidden_key: tuple[int, int] | None = None
+        #: The shared header the seqlock last wrote, and its address (``seqlock``).
+        self._header: np.ndarray | None = None
+        self._header_at = 0
+        # Now, not in the first tick: a warm-up must not scan the bone.
+        self.refresh_forbidden()
 
     @property
     def params(self) -> CuttingParams:
@@ -201,12 +232,26 @@ class BoneEngine:
         self._forbidden_key = (id(materials), materials.forbidden_revision)
 
     def refresh_forbidden(self) -> None:
-        """Recompute which bricks hold forbidden structures (a full scan of the grid: done
-        automatically when the material table's forbidden flags change, or call it after
-        writing ``grid.labels``)."""
-        forbidden_bricks(self.grid.density, self.grid.labels, self.materials.forbidden,
-                         self._brick_forbidden)
+        """Recompute which bricks hold forbidden structures (done automatically when the
+        material table's forbidden flags change, or call it after writing ``grid.labels``;
+        a grid with a brick label mask needs that recounted first: ``bricks.brick_labels``)."""
+        self.forbidden_bricks_for(self.materials, self._brick_forbidden)
         self._forbidden_key = (id(self.materials), self.materials.forbidden_revision)
+
+    def forbidden_bricks_for(self, materials: MaterialTable,
+                             out: np.ndarray | None = None) -> np.ndarray:
+        """Which bricks hold a structure ``materials`` calls forbidden (uint8, brick shape),
+        without changing the engine. From the grid's brick label mask when it has one (a
+        shared bone's: a pass over the bricks), else a scan of the voxels; either kernel
+        releases the GIL."""
+        g = self.grid
+        if out is None:
+            out = np.zeros(g.brick_bone.shape, dtype=np.uint8)
+        if g.brick_labels is not None:
+            forbidden_from_labels(g.brick_labels, materials.forbidden, out)
+        else:
+            forbidden_bricks(g.density, g.labels, materials.forbidden, out)
+        return out
 
     def forget_last_carve(self) -> None:
         """Carve the burr's whole neighbourhood next tick (after the radius or the bone's
@@ -241,7 +286,9 @@ class BoneEngine:
         self._stamp += 1
         shared = g.shared_header
         if shared is not None and carve:
-            shared[0] += 1  # odd: voxels being written (shared.SharedBone reads around it)
+            if shared is not self._header:
+                self._header, self._header_at = shared, header_address(shared)
+            write_begin(self._header_at)  # odd: voxels being written (SharedBone reads around)
         removed = bone_tick(
             b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
             b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
@@ -256,8 +303,7 @@ class BoneEngine:
         if removed:
             g.version += 1
         if shared is not None and carve:
-            shared[1] = g.version
-            shared[0] += 1
+            write_end(self._header_at, g.version)
         if carve and cutting:
             self._previous[:] = centre_g
         self.ticks += 1

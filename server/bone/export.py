@@ -50,6 +50,7 @@ def write_volume(
     fmt: VolumeFormat,
     what: VolumeWhat = "remaining",
     compress: bool = True,
+    generation: int | None = None,
 ) -> None:
     """Write one voxel array of ``grid`` into the binary file object ``f``.
 
@@ -64,10 +65,12 @@ def write_volume(
         ``space directions`` = the grid's direction columns × spacing in mm, ``space origin``
         = ``origin_mm``, ``space units`` mm, data with the first axis fastest as NRRD
         requires; a phantom's world frame is written as LPS too). Geometry travels with the
-        data, and the key/value fields ``burrforce_bone_version:=N`` and
+        data, and the key/value fields ``burrforce_bone_version:=N``,
+        ``burrforce_bone_generation:=G`` (when ``generation`` is given) and
         ``burrforce_volume:=<what>`` record which bone state it is. A label map read back
         with ``kind="labels"`` keeps its regions, not its materials (the loader names them
-        from a materials file): use ``save_bone`` to keep the material table.
+        from a materials file): use ``save_bone`` to keep the material table (the REST
+        volume export's ``format=bone``).
         ``"npy"``: exactly what ``np.save`` writes for the uint8 (nx, ny, nz) C-ordered array.
         **An .npy file carries no geometry** (spacing, origin, orientation): the receiver
         must get them elsewhere, e.g. from the bone's info.
@@ -77,6 +80,9 @@ def write_volume(
     compress : bool
         NRRD only: gzip encoding (``encoding: gzip``), else raw. Ignored for npy, which has
         no compression of its own (compress the HTTP response instead).
+    generation : int or None
+        NRRD only: the server's bone generation the volume is of (see ``deltas``), written
+        as ``burrforce_bone_generation``; npy has no room for it.
 
     Notes
     -----
@@ -100,7 +106,7 @@ def write_volume(
     if fmt == "npy":
         _write_npy(grid, f, what)
     else:
-        _write_nrrd(grid, f, what, bool(compress))
+        _write_nrrd(grid, f, what, bool(compress), generation)
 
 
 def remaining_of(density: np.ndarray, swept: np.ndarray) -> np.ndarray:
@@ -151,7 +157,8 @@ def _vector(v: np.ndarray) -> str:
     return "(" + ",".join(_number(x) for x in v) + ")"
 
 
-def nrrd_header(grid: BoneGrid, what: str, compress: bool) -> bytes:
+def nrrd_header(grid: BoneGrid, what: str, compress: bool,
+                generation: int | None = None) -> bytes:
     """The NRRD header (through the blank line that ends it) :func:`write_volume` writes."""
     axes = grid.direction * grid.spacing_mm  # column c: the world step along grid axis c
     nx, ny, nz = grid.shape
@@ -172,11 +179,14 @@ def nrrd_header(grid: BoneGrid, what: str, compress: bool) -> bytes:
         f"burrforce_volume:={what}",
         f"burrforce_bone_version:={int(grid.version)}",
     ]
+    if generation is not None:
+        lines.append(f"burrforce_bone_generation:={int(generation)}")
     return ("\n".join(lines) + "\n\n").encode("ascii")
 
 
-def _write_nrrd(grid: BoneGrid, f: BinaryIO, what: str, compress: bool) -> None:
-    f.write(nrrd_header(grid, what, compress))
+def _write_nrrd(grid: BoneGrid, f: BinaryIO, what: str, compress: bool,
+                generation: int | None) -> None:
+    f.write(nrrd_header(grid, what, compress, generation))
     write: Callable[[bytes], object] = f.write
     if not compress:
         for chunk in _fortran_order_chunks(grid, what):

@@ -50,6 +50,9 @@ class BoneGrid:
         labels: uint8 array of the same shape, or one label for every voxel (default 1, the
             thesis's cortical bone).
         swept: uint8 array of the same shape (a restored session); default nothing swept.
+        bricks: (brick_bone, brick_full), int32 arrays of the brick shape already counted for
+            these voxels (``count_bricks``): a shared bone's, counted by the process that
+            published it, so the hot loop does not scan the voxels again. Default: counted.
 
     Raises:
         ValueError: wrong dtype, shape or size; spacing, origin or direction out of range.
@@ -63,6 +66,7 @@ class BoneGrid:
         direction: np.ndarray | None = None,
         labels: np.ndarray | int = CORTICAL_LABEL,
         swept: np.ndarray | None = None,
+        bricks: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         density = _volume("density", density)
         shape = density.shape
@@ -82,12 +86,20 @@ class BoneGrid:
         if not (extent <= MAX_EXTENT_MM).all():
             raise ValueError(f"grid extent {extent.tolist()} mm exceeds {MAX_EXTENT_MM:g} mm")
         self.identity_direction = bool(np.array_equal(self.direction, np.eye(3)))
-        self.brick_bone = np.zeros(brick_shape(shape), dtype=np.int32)
-        self.brick_full = np.zeros_like(self.brick_bone)
-        self.brick_voxels = np.zeros_like(self.brick_bone)
-        self.brick_version = np.zeros(self.brick_bone.shape, dtype=np.int64)
+        bshape = brick_shape(shape)
+        if bricks is None:
+            self.brick_bone = np.zeros(bshape, dtype=np.int32)
+            self.brick_full = np.zeros_like(self.brick_bone)
+            count_bricks(self.density, self.swept, self.brick_bone, self.brick_full)
+        else:
+            self.brick_bone = _bricks("brick_bone", bricks[0], bshape)
+            self.brick_full = _bricks("brick_full", bricks[1], bshape)
+        self.brick_voxels = np.zeros(bshape, dtype=np.int32)
+        self.brick_version = np.zeros(bshape, dtype=np.int64)
         voxels_per_brick(np.array(shape, dtype=np.int64), self.brick_voxels)
-        count_bricks(self.density, self.swept, self.brick_bone, self.brick_full)
+        #: Per brick, a bit per label with bone in it (``bricks.brick_labels``), when the
+        #: grid came with one (a shared bone's); None: scan the voxels instead.
+        self.brick_labels: np.ndarray | None = None
         #: Monotone bone version: bumped by every tick that removed bone.
         self.version = 0
         #: For a grid in shared memory (``shared.SharedBone``): int64 counters the engine
@@ -191,6 +203,13 @@ def _volume(name: str, array: object, shape: tuple[int, ...] | None = None) -> n
     if shape is not None and array.shape != shape:
         raise ValueError(f"{name} has shape {array.shape}, the density {shape}")
     return np.ascontiguousarray(array)
+
+
+def _bricks(name: str, array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    if not isinstance(array, np.ndarray) or array.dtype != np.int32 or array.shape != shape \
+            or not array.flags.c_contiguous:
+        raise ValueError(f"{name} must be a C-contiguous int32 array of shape {shape}")
+    return array
 
 
 def _spacing(spacing: object) -> np.ndarray:

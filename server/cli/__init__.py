@@ -147,19 +147,25 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
     from ..bench import accuracy as bench_accuracy
     from ..bench import device as bench_device
+    from ..bench import flood as bench_flood
     from ..bench import latency as bench_latency
     from ..bench import load as bench_load
+    from ..bench import load_while_streaming as bench_load_while_streaming
     from ..bench import mesh as bench_mesh
     from ..bench import model as bench_model
+    from ..bench import soak as bench_soak
     from ..bench import stability as bench_stability
 
     bench_model.add_parser(bench_sub)
     bench_accuracy.add_parser(bench_sub)
     bench_load.add_parser(bench_sub)
+    bench_load_while_streaming.add_parser(bench_sub)
     bench_latency.add_parser(bench_sub)
     bench_stability.add_parser(bench_sub)
     bench_device.add_parser(bench_sub)
     bench_mesh.add_parser(bench_sub)
+    bench_flood.add_parser(bench_sub)
+    bench_soak.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import ipaddress
 import os
 import secrets
 import signal
@@ -24,7 +23,13 @@ from pathlib import Path
 from ...client import connection
 from ...proto.frames import FRAMES
 from ...proto.tag import parse_key
-from ..api.config import DEFAULT_HTTP_PORT, DEFAULT_UDP_PORT, ServeConfig, load_config
+from ..api.config import (
+    DEFAULT_HTTP_PORT,
+    DEFAULT_UDP_PORT,
+    ServeConfig,
+    is_loopback,
+    load_config,
+)
 from ..haptics.profiles import PROFILES
 from .args import float_in, int_in
 from .device import add_loop_options, loop_config
@@ -80,9 +85,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="uploads, snapshots, recordings. Default ~/.local/share/burrforce")
     p.add_argument("--bone-library", type=Path, default=None,
                    help="a folder of bone files sessions may load as library:PATH")
+
+    def data_budget(text: str) -> int:
+        from ..api.config import parse_size_bytes
+
+        try:
+            return parse_size_bytes(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    p.add_argument("--data-budget", type=data_budget, default=None, metavar="SIZE",
+                   help="what uploads, snapshots, recordings and exports may take in the data "
+                        "directory together (20GiB, 500M, 0: no limit); writes beyond it are "
+                        "refused, GET /v1/storage shows the usage. Default 20GiB")
     p.add_argument("--connection-file", type=Path, default=None,
                    help=f"where to write the connection file. Default "
                         f"{connection.default_path()}")
+    p.add_argument("--fresh", action="store_true",
+                   help="start with no sessions from the journal: forget the sessions (and "
+                        "their carving) the last run left in DATA_DIR/journal. Default: "
+                        "resume them, with their ids, keys and carved bones")
     p.add_argument("--demo", action="store_true",
                    help="once ready, cut a groove with `burrforce client demo` so forces flow")
     p.add_argument("--haptic-device", default=None, metavar="DEVICE",
@@ -93,15 +115,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "output is then coupled for the device's profile")
     add_loop_options(p)
     p.set_defaults(func=main)
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def resolve_token(config: ServeConfig) -> tuple[str, bool]:
@@ -136,12 +149,12 @@ def main(args: argparse.Namespace) -> int:
              "device": args.device,
              "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
              "token": args.token, "data_dir": args.data_dir,
-             "bone_library": args.bone_library}
+             "bone_library": args.bone_library, "data_budget_bytes": args.data_budget}
     if args.demo and args.haptic_device:
         raise ValueError("--demo and --haptic-device both stream the default session: choose "
                          "one (the device cuts with its own hand)")
     config = load_config(args.config, flags)
-    if config.no_auth and not _is_loopback(config.host):
+    if config.no_auth and not is_loopback(config.host):
         raise ValueError(f"--no-auth is for loopback development; {config.host} is reachable "
                          "from other machines, so its session needs a key")
     key_hex = None
@@ -153,7 +166,18 @@ def main(args: argparse.Namespace) -> int:
     say(f"loading {bone} and warming up the kernels (the first start compiles them: "
         "up to a minute)...")
     t0 = time.monotonic()
-    stack = ServerStack(config, token)
+    from ..api.journal import discard, discard_session
+
+    if args.fresh:
+        n = discard(Path(config.data_dir))
+        if n:
+            say(f"--fresh: {n} journaled session(s) forgotten")
+    elif args.demo and discard_session(Path(config.data_dir), config.session_id):
+        # The demo cuts a groove and compares it with the model: on fresh bone, not in the
+        # groove the last demo left.
+        say(f"--demo: session {config.session_id} starts on fresh bone (its journal from the "
+            "last run is forgotten; other sessions are resumed)")
+    stack = ServerStack(config, token, say=say)
     conn_path = conn = None
     try:
         stack.start_backend()
@@ -173,10 +197,14 @@ def main(args: argparse.Namespace) -> int:
             name, options = check_spec(args.haptic_device, "haptic")
             device_profile = HAPTIC[name].profile_for(options)
         config = dataclasses.replace(config, device=device_profile)
-        session = stack.add_session(source, Parameters(frame=config.frame,
-                                                       device=device_profile),
-                                    session_id=config.session_id, key_hex=key_hex,
-                                    authenticated=not config.no_auth)
+        if config.session_id in stack.resumed:
+            session = plane.get(config.session_id)
+            _resumed_default(say, session, source, args.frame, key_hex)
+        else:
+            session = stack.add_session(source, Parameters(frame=config.frame,
+                                                           device=device_profile),
+                                        session_id=config.session_id, key_hex=key_hex,
+                                        authenticated=not config.no_auth)
         if args.haptic_device:
             _start_device(say, plane, session, args)
         server = stack.server
@@ -211,16 +239,39 @@ def main(args: argparse.Namespace) -> int:
         done.set()
         conn, conn_path = context.get("conn"), context.get("path")
     finally:
-        say("stopping: sessions removed, hot loop stopped...")
+        say("stopping: sessions journaled (the next start resumes them; --fresh forgets "
+            "them), hot loop stopped...")
         stack.stop()
         if conn_path is not None:
             connection.remove(conn_path, only_if=conn)
+    if stack.supervisor is not None and stack.supervisor.state == "lost":
+        from ..api.supervisor import EXIT_LOOP_LOST
+
+        say(f"stopped: the hot loop could not be restarted (exit {EXIT_LOOP_LOST})")
+        return EXIT_LOOP_LOST
     say("stopped")
     return 0
 
 
 def _ignore(signum: int, frame: object) -> None:
     pass
+
+
+def _resumed_default(say, session, source, frame: str | None, key_hex: str | None) -> None:
+    """The default session came back from the journal: say so, and what of the command line
+    it does not follow (the journal wins: a restart must not throw away a trainee's carving
+    unless asked to)."""
+    say(f"session {session.id} resumed from the journal: bone {session.source.source}, "
+        "carving and key as they were")
+    differs = []
+    if session.source.source != source.source:
+        differs.append(f"--bone {source.source}")
+    if key_hex is not None and key_hex != session.key_hex:
+        differs.append("--key")
+    if frame and frame != session.config.frame:
+        differs.append(f"--frame {frame}")
+    if differs:
+        say(f"  not applied to it: {', '.join(differs)} (add --fresh to start over with them)")
 
 
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
@@ -315,6 +366,8 @@ def _start_device(say, plane, session, args: argparse.Namespace) -> None:
 
 def _report(stats, session_id: int, done: threading.Event, say, devices=None) -> None:
     """A status line every few seconds while packets arrive; device events as they come."""
+    from ..hotloop.loop import LOOP_COUNTERS
+
     last_received = None
     last_t = time.monotonic()
     while not done.wait(STATUS_INTERVAL_S):
@@ -334,7 +387,7 @@ def _report(stats, session_id: int, done: threading.Event, say, devices=None) ->
             s = latest["sessions"].get(session_id, {})
             removed = sum(s.get("removed_mm3", {}).values()) if s else 0.0
             drops = {k: v for k, v in counters.items()
-                     if v and k not in ("received", "replied", "noticed")}
+                     if v and k not in ("received", "replied", "noticed", *LOOP_COUNTERS)}
             tick = s.get("tick_p99_us")
             device = ""
             process = devices.loops.get(session_id) if devices is not None else None

@@ -44,7 +44,7 @@ import numpy as np
 from ...client.udp import SessionRules
 from ...proto.codec import ProtocolError
 from ...proto.frames import Transform, frame
-from ...proto.messages import ERROR_NAMES, MAX_REPLY_BYTES, OK, Notice
+from ...proto.messages import ERROR_NAMES, MAX_REPLY_BYTES, NEW_STREAM, OK, Notice
 from . import stats as st
 from .base import DeviceDisconnected, DeviceError
 from .mapping import WorkspaceMap
@@ -313,7 +313,8 @@ class DeviceLoop:
                 continue
             if isinstance(item, Notice):
                 s[st.ST_NOTICES] += 1
-                if int(s[st.ST_LAST_NOTICE]) != item.error:
+                # NEW_STREAM is the handshake (SessionRules adopted the stream): not news.
+                if int(s[st.ST_LAST_NOTICE]) != item.error and item.error != NEW_STREAM:
                     self.say(f"server notice: {ERROR_NAMES.get(item.error, item.error)}")
                 s[st.ST_LAST_NOTICE] = item.error
                 got = got or item.seq == awaited

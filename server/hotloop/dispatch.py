@@ -12,14 +12,23 @@ from contextlib import AbstractContextManager, nullcontext
 
 import numpy as np
 
-from ...proto.codec import ProtocolError, decode_pose, encode_notice, encode_pose
+from ...proto.codec import (
+    ProtocolError,
+    decode_pose,
+    encode_bad_version_v1,
+    encode_notice_values,
+    encode_pose,
+)
 from ...proto.messages import (
     BAD_TAG,
+    BAD_VERSION,
     ERROR_NAMES,
     INTERNAL,
+    NEW_STREAM,
     OK,
     UNKNOWN_SESSION,
-    Notice,
+    VERSION_1,
+    WRONG_STREAM,
     Pose,
 )
 from .session import Session
@@ -40,7 +49,10 @@ class Dispatcher:
     Counters (``counters``): ``received``, ``replied``, ``noticed``, ``notices_suppressed``,
     ``send_errors``, and one per error name (``malformed``, ``too_big``, ``bad_version``,
     ``bad_type``, ``unknown_session``, ``bad_tag``, ``bad_value``, ``stale``, ``duplicate``,
-    ``internal``) for datagrams that were not processed normally.
+    ``internal``, ``wrong_stream``) for datagrams that were not processed normally;
+    ``new_stream`` counts hellos (answered or not).
+
+    Processing order (SPEC.md 3.4): size, decode, session, tag, stream, sequence, values.
     """
 
     def __init__(self) -> None:
@@ -50,6 +62,9 @@ class Dispatcher:
         for code, name in ERROR_NAMES.items():
             if code != OK:
                 self.counters[name] = 0
+        #: The last datagram :meth:`handle` took was a POSE a session accepted (authentic, in
+        #: its open stream, newer than the last): the loop gives its sender a socket of its own.
+        self.accepted = False
         self._tokens = NOTICE_BURST
         self._tokens_ns = 0
         self._internal_logged_ns = -(1 << 62)
@@ -60,15 +75,25 @@ class Dispatcher:
         self.sessions[session.id] = session
 
     def warm_up(self) -> None:
-        """Run one whole datagram per session through decode, tag, tick and encode (a pose
-        far outside the bone: nothing is carved), so no first packet pays for compiling or
-        importing; then forget it and start counting from zero."""
+        """Run a hello, a commit and a tick per session through decode, tag, tick and encode
+        (a pose far outside the bone: nothing is carved), so no first packet pays for
+        compiling or importing; then forget them and start counting from zero (the stream
+        the warm-up used is ended; ``next_stream`` is as it was)."""
         for session in self.sessions.values():
+            first = session.next_stream
             far = session.transform.point_out((-1e5, -1e5, -1e5))
             pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),
                         session.engine.params.min_cutting_rpm + 1.0, True)
-            self.handle(encode_pose(pose, session.tagger), time.monotonic_ns())
+            self.handle(encode_pose(pose, session.tagger), time.monotonic_ns())  # hello
+            stream = session.offer
+            for seq in (1, 2):  # the commit, then a tick of the open stream
+                self.handle(encode_pose(pose._replace(seq=seq, t_client_us=1 + seq,
+                                                      stream=stream), session.tagger),
+                            time.monotonic_ns())
             session.reset_statistics()
+            # The warm-up's stream never left this process: the first number a client gets
+            # is still the one the session was given.
+            session.next_stream = first
         for name in self.counters:
             self.counters[name] = 0
 
@@ -76,10 +101,12 @@ class Dispatcher:
         """The answer to ``data`` (received at ``t_recv_ns``, monotonic), or None."""
         counters = self.counters
         counters["received"] += 1
+        self.accepted = False
         try:
             pose = decode_pose(data)
         except ProtocolError as exc:
-            return self._reject(exc.code, exc.header, len(data), None, t_recv_ns)
+            return self._reject(exc.code, exc.header, len(data), None, t_recv_ns,
+                                exc.version)
         except Exception:  # a decoder bug must not stop the loop
             return self._internal(None, t_recv_ns)
         header = (pose.session, pose.seq, pose.t_client_us)
@@ -89,10 +116,16 @@ class Dispatcher:
         tagger = session.tagger
         if tagger is not None and (pose.tag is None or not tagger.verify(data)):
             return self._reject(BAD_TAG, header, len(data), session, t_recv_ns)
-        order = session.admit(pose.seq, t_recv_ns, pose.flags, pose.t_client_us)
+        stream = pose.stream
+        if stream == 0 or stream != session.stream:  # 0 is never an open stream
+            if stream == 0 or stream != session.offer:
+                return self._handshake(session, pose, len(data), t_recv_ns)
+            session.commit()
+        order = session.admit(pose.seq)
         if order != OK:  # stale and duplicate datagrams are never answered (replays)
             counters[ERROR_NAMES[order]] += 1
             return None
+        self.accepted = True
         try:
             out, error = session.respond(pose, t_recv_ns)
         except Exception:
@@ -103,8 +136,30 @@ class Dispatcher:
         counters["replied"] += 1
         return out
 
+    def _handshake(self, session: Session, pose: Pose, size: int, now_ns: int) -> bytes | None:
+        """A hello (answered NEW_STREAM with the offer) or a POSE of a stream that is not
+        open (WRONG_STREAM): never ticked, answered within the session's own notice bucket
+        and never longer than the request."""
+        counters = self.counters
+        if pose.stream == 0:
+            code, stream = NEW_STREAM, session.hello()
+        else:
+            code, stream = WRONG_STREAM, pose.stream
+            session.counters["wrong_stream"] += 1
+        counters[ERROR_NAMES[code]] += 1
+        if not session.stream_notice_allowed(now_ns, code == WRONG_STREAM):
+            counters["notices_suppressed"] += 1
+            return None
+        notice = encode_notice_values(session.id, pose.seq, pose.t_client_us, code, stream,
+                                      session.tagger)
+        if len(notice) > size:
+            return None
+        counters["noticed"] += 1
+        return notice
+
     def _reject(self, code: int, header: tuple[int, int, int] | None, size: int,
-                session: Session | None, now_ns: int) -> bytes | None:
+                session: Session | None, now_ns: int,
+                version: int | None = None) -> bytes | None:
         """Count a rejected datagram; a short notice when it is addressable and no longer than
         the datagram itself (so answering never amplifies), within the notice rate."""
         self.counters[ERROR_NAMES[code]] += 1
@@ -117,8 +172,11 @@ class Dispatcher:
         if self._tokens < 1.0:
             self.counters["notices_suppressed"] += 1
             return None
-        notice = encode_notice(Notice(*header, code),
-                               session.tagger if session is not None else None)
+        if code == BAD_VERSION and version == VERSION_1:  # in v1's shape: "update me"
+            notice = encode_bad_version_v1(*header)
+        else:
+            notice = encode_notice_values(*header, code, 0,
+                                          session.tagger if session is not None else None)
         if len(notice) > size:
             return None
         self._tokens -= 1.0

@@ -11,11 +11,16 @@ is as fast as the thousandth.
 from __future__ import annotations
 
 import gc
+import math
+import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -29,7 +34,7 @@ from ..bone.shared import SharedBone, SharedBoneRef
 from ..haptics.stage import warm_up as warm_haptics
 from ..model.params import CuttingParams
 from .dispatch import Dispatcher
-from .loop import open_socket, serve
+from .loop import LOOP_COUNTERS, open_socket, serve
 from .session import Session, SessionConfig
 
 PHANTOM_PREFIX = "phantom:"
@@ -37,6 +42,18 @@ PHANTOM_PREFIX = "phantom:"
 DEFAULT_BONE = "phantom:temporal"
 #: First start with a cold numba cache compiles every kernel: minutes on a slow machine.
 START_TIMEOUT_S = 600.0
+#: A command's answer is due within this (adding a session passes its own, longer bound).
+CALL_TIMEOUT_S = 30.0
+#: The longest the packet thread waits for the GIL while a session is built, s (about).
+GIL_TURN_S = 100e-6
+#: The child's heartbeat thread takes the loop's lock and beats this often.
+HEARTBEAT_INTERVAL_S = 0.1
+#: The hot loop's niceness where it may raise its priority (``raise_priority``).
+HOT_LOOP_NICE = -10
+#: The first message to a spare (``HotLoopProcess.spawn_spare``), and the bone it warms on.
+STANDBY = "standby"
+SPARE_BONE = "phantom:workpiece"
+SPARE_VOXEL_MM = 0.5
 
 
 @dataclass(frozen=True)
@@ -55,6 +72,7 @@ class SessionSpec:
         materials: the material table (None: the bone's own).
         publish: for a shared bone, keep the counters that let the control plane read it
             while it is cut.
+        next_stream: the first stream number the session offers (None: a random one).
     """
 
     session_id: int = 1
@@ -66,6 +84,7 @@ class SessionSpec:
     shaft: ShaftParams = field(default_factory=ShaftParams)
     materials: MaterialTable | None = None
     publish: bool = True
+    next_stream: int | None = None
 
 
 def load_session_bone(spec: SessionSpec) -> Bone:
@@ -82,7 +101,8 @@ def build_session(spec: SessionSpec) -> Session:
     bone = load_session_bone(spec)
     materials = spec.materials if spec.materials is not None else bone.materials
     engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft)
-    session = Session(spec.session_id, engine, spec.config, spec.key)
+    session = Session(spec.session_id, engine, spec.config, spec.key,
+                      next_stream=spec.next_stream)
     session.publish_bone(spec.publish)
     return session
 
@@ -115,6 +135,11 @@ class HotLoopProcess:
         self.bones: dict[int, dict] = {}
         self._proc: subprocess.Popen | None = None
         self._conn: Connection | None = None
+        self._beat: socket.socket | None = None
+        self._beat_s = 0.0
+        self._exit_code: int | None = None
+        #: Why the process was killed as wedged (None: it was not).
+        self.wedged: str | None = None
         self._lock = threading.Lock()
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> tuple[str, int]:
@@ -122,20 +147,16 @@ class HotLoopProcess:
 
         The child is a fresh interpreter (``python -m burrforce.server.hotloop.child``), not a
         multiprocessing child: nothing of the parent is inherited or re-imported, so this
-        works from any script, notebook or server.
+        works from any script, notebook or server. A second socket pair carries the child's
+        heartbeat (``heartbeat_age_s``).
 
         Raises:
             RuntimeError: the loop failed to start (the message says why) or timed out.
         """
-        ours, theirs = socket.socketpair()
-        try:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "burrforce.server.hotloop.child", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
-        finally:
-            theirs.close()
-        conn = Connection(ours.detach())
-        self._proc, self._conn = proc, conn
+        if self._proc is None:
+            self._spawn()
+        proc, conn = self._proc, self._conn
+        assert proc is not None and conn is not None
         try:
             conn.send(self.config)
             if not conn.poll(timeout_s):
@@ -151,25 +172,99 @@ class HotLoopProcess:
             raise RuntimeError(message[1])
         self.address = (message[1], message[2])
         self.bones = message[3]
+        self._beat_s = time.monotonic()
         return self.address
 
-    def call(self, command: str, **kwargs: object) -> object:
-        """Run a command in the loop process and return its result.
+    def spawn_spare(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Start the process as a warm spare: interpreter, imports and every kernel loaded
+        and run once (on a small bone), but no port and no sessions until :meth:`start`.
+        A supervisor keeps one so that replacing a crashed loop costs a bind and the
+        sessions' mapping, not a second of interpreter start-up.
 
         Raises:
-            RuntimeError: the loop is not running, or the command failed (message from it).
+            RuntimeError: the spare failed to warm up (the message says why) or timed out.
+        """
+        self._spawn()
+        assert self._conn is not None
+        try:
+            self._conn.send(STANDBY)
+            if not self._conn.poll(timeout_s):
+                raise RuntimeError(f"the spare hot loop did not warm up within {timeout_s:g} s")
+            message = self._conn.recv()
+        except (EOFError, OSError):
+            message = ("error", "the spare hot-loop process exited while warming up")
+        except RuntimeError as exc:
+            message = ("error", str(exc))
+        if message[0] != "warm":
+            self._kill()
+            raise RuntimeError(message[1])
+
+    @property
+    def spare(self) -> bool:
+        """A process is running but not started (``spawn_spare``)."""
+        return self._proc is not None and self.address is None
+
+    def _spawn(self) -> None:
+        ours, theirs = socket.socketpair()
+        beat_ours, beat_theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "burrforce.server.hotloop.child", str(theirs.fileno()),
+                 str(beat_theirs.fileno())],
+                pass_fds=(theirs.fileno(), beat_theirs.fileno()), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+            beat_theirs.close()
+        beat_ours.setblocking(False)
+        self._proc, self._conn, self._beat = proc, Connection(ours.detach()), beat_ours
+
+    def call(self, command: str, timeout_s: float = CALL_TIMEOUT_S, **kwargs: object) -> object:
+        """Run a command in the loop process and return its result.
+
+        A command that gets no answer within ``timeout_s`` leaves the pipe out of step (a late
+        answer would be taken for the next command's): the process is then killed, and the
+        supervisor (``api.supervisor``) starts a new one.
+
+        Raises:
+            RuntimeError: the loop is not running, did not answer in time, or the command
+                failed (message from it).
         """
         with self._lock:
-            if self._conn is None:
+            # Once: the supervisor may kill the loop (and close the pipe) meanwhile; a closed
+            # pipe then raises OSError here, which means the same as EOF.
+            conn = self._conn
+            if conn is None:
                 raise RuntimeError("the hot loop is not running")
             try:
-                self._conn.send((command, kwargs))
-                status, result = self._conn.recv()
+                conn.send((command, kwargs))
+                if not conn.poll(timeout_s):
+                    self.wedged = f"{command!r} got no answer within {timeout_s:g} s"
+                    self._kill(force=True)
+                    raise RuntimeError(f"the hot loop is not answering ({self.wedged}): "
+                                       "it was stopped and is being restarted")
+                status, result = conn.recv()
             except (EOFError, OSError, BrokenPipeError):
                 raise RuntimeError("the hot-loop process has exited") from None
         if status != "ok":
             raise RuntimeError(result)
         return result
+
+    def heartbeat_age_s(self) -> float:
+        """Seconds since the loop last showed it can take its lock (the child's heartbeat
+        thread takes it every ``HEARTBEAT_INTERVAL_S``): a dead process or a tick that never
+        ends stops the beats. ``inf`` when the loop is not running."""
+        beat = self._beat
+        if beat is None or self._proc is None:
+            return math.inf
+        try:
+            while True:
+                beat.recv(64)
+                self._beat_s = time.monotonic()
+        except (BlockingIOError, InterruptedError):
+            pass
+        except OSError:
+            return math.inf
+        return time.monotonic() - self._beat_s
 
     @property
     def pid(self) -> int:
@@ -182,6 +277,11 @@ class HotLoopProcess:
 
     def is_alive(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
+
+    @property
+    def exit_code(self) -> int | None:
+        """The process's exit status once it has ended (negative: killed by that signal)."""
+        return self._proc.poll() if self._proc is not None else self._exit_code
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Stop the loop (it closes its socket) and wait for the process to end."""
@@ -197,19 +297,28 @@ class HotLoopProcess:
             pass
         self._kill()
 
-    def _kill(self) -> None:
+    def _kill(self, force: bool = False) -> None:
+        """End the process (SIGTERM, then SIGKILL; ``force``: SIGKILL at once, for a wedged
+        loop that would not act on anything gentler) and close the pipes."""
         proc = self._proc
         if proc is not None and proc.poll() is None:
-            proc.terminate()
+            if force:
+                proc.kill()
+            else:
+                proc.terminate()
             try:
                 proc.wait(5.0)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        if self._conn is not None:
-            self._conn.close()
+        if proc is not None:
+            self._exit_code = proc.returncode
+        for pipe in (self._conn, self._beat):
+            if pipe is not None:
+                pipe.close()
         self._proc = None
         self._conn = None
+        self._beat = None
 
     def __enter__(self) -> HotLoopProcess:
         if self._proc is None:
@@ -221,13 +330,22 @@ class HotLoopProcess:
 
 
 # -- the child process --------------------------------------------------------------------------
-def child_main(conn: Connection) -> None:
+def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     """The hot-loop process: read the config, build and warm the sessions, open the port,
-    report ready, then serve packets (this thread) and commands (another thread)."""
+    report ready, then serve packets (this thread), commands (another thread) and the
+    heartbeat on ``beat`` (a third)."""
     # The parent owns Ctrl-C and stops the loop through the pipe, after zeroing what it must.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise_priority()
     try:
         config = conn.recv()
+        if config == STANDBY:
+            _warm_spare()
+            conn.send(("warm",))
+            config = conn.recv()
+    except (EOFError, OSError):  # the parent went away before starting us: nothing to say
+        return
+    try:
         if not isinstance(config, HotLoopConfig):
             raise TypeError("expected a HotLoopConfig")
         dispatcher = Dispatcher()
@@ -247,6 +365,8 @@ def child_main(conn: Connection) -> None:
         return
     lock = threading.Lock()
     stopping = threading.Event()
+    for name in LOOP_COUNTERS:  # counted by the loop; there before the first stats call
+        dispatcher.counters.setdefault(name, 0)
     # Everything alive now lives for the process: keep the collector from walking it per
     # packet.
     gc.collect()
@@ -258,9 +378,52 @@ def child_main(conn: Connection) -> None:
                                 args=(conn, dispatcher, lock, stopping, sock),
                                 name="burrforce-commands", daemon=True)
     commands.start()
+    if beat is not None:
+        threading.Thread(target=_heartbeat, args=(beat, lock, stopping),
+                         name="burrforce-heartbeat", daemon=True).start()
     serve(sock, dispatcher, lock, stopping)
     sock.close()
     commands.join(5.0)
+
+
+def raise_priority(nice: int = HOT_LOOP_NICE) -> bool:
+    """Ask the scheduler to run this process ahead of the control plane and whatever else
+    shares the cores (nice ``nice``). Allowed for root, with CAP_SYS_NICE (docker:
+    ``cap_add: [SYS_NICE]``) or an ``RLIMIT_NICE`` that permits it; elsewhere the loop runs
+    at the usual priority. Measured (``bench soak``): with a 100 000/s local flood on two
+    cores, the usual priority let the flood's CPU push a session's p99 to 164 ms."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except (PermissionError, OSError):
+        return False
+    return True
+
+
+def _warm_spare() -> None:
+    """Everything a first session needs, done before it comes: kernels loaded from the
+    cache (or compiled) and run through every path of a tick on a small bone."""
+    dispatcher = Dispatcher()
+    dispatcher.add(build_session(SessionSpec(bone=SPARE_BONE, voxel_mm=SPARE_VOXEL_MM,
+                                             publish=False)))
+    dispatcher.warm_up()
+    warm_haptics()
+    del dispatcher
+    gc.collect()
+
+
+def _heartbeat(beat: socket.socket, lock: threading.Lock, stopping: threading.Event) -> None:
+    """Beat while the loop can take its lock between two packets: a tick that never ends
+    (or a dead process) is what silences it, not an idle socket."""
+    beat.setblocking(False)
+    while not stopping.wait(HEARTBEAT_INTERVAL_S):
+        with lock:
+            pass
+        try:
+            beat.send(b"\x01")
+        except BlockingIOError:  # the parent has not read for a while: it only needs one
+            pass
+        except OSError:  # the parent is gone; the command thread stops the loop
+            return
 
 
 def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lock,
@@ -313,16 +476,23 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
                 raise ValueError(f"session {spec.session_id} exists")
         # Loading and warming are the slow part: on a dispatcher of its own, outside the lock;
         # the session goes in (or replaces the old one) between two packets.
-        session = build_session(spec)
-        probe = Dispatcher()
-        probe.add(session)
-        probe.warm_up()
+        with _short_gil_turns():
+            session = build_session(spec)
+            probe = Dispatcher()
+            probe.add(session)
+            probe.warm_up()
+        old = None
         with lock:
             if adding:
                 dispatcher.add(session)
             else:
-                _session(dispatcher, spec.session_id)
+                old = _session(dispatcher, spec.session_id)
+                # Stream numbers go on from the old session's: one it offered is never
+                # offered again (a captured hello and POSE would open it; SPEC 5.2).
+                session.next_stream = old.next_stream
                 dispatcher.sessions[spec.session_id] = session
+        # The old bone is unmapped here, with the packet thread free to take the lock.
+        del old
         return bone_info(session)
     if command == "configure":
         config = kwargs["config"]
@@ -350,9 +520,26 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
             return dispatcher.sessions.pop(kwargs["session_id"], None) is not None
     if command == "restart_stream":
         with lock:
-            dispatcher.sessions[kwargs["session_id"]].restart_stream()
+            dispatcher.sessions[kwargs["session_id"]].end_stream()
         return None
     raise ValueError(f"unknown command {command!r}")
+
+
+@contextmanager
+def _short_gil_turns(interval_s: float = GIL_TURN_S) -> Iterator[None]:
+    """While the command thread builds a session, the packet thread waits at most about
+    ``interval_s`` for the GIL (the interpreter's default turn is 5 ms).
+
+    What is left of a build is milliseconds of plain Python (objects, small arrays: the
+    voxel work comes precomputed in a shared bone's file), in stretches up to ~0.5 ms
+    (measured with ``bench.gil_probe``). A packet arriving meanwhile would wait for the
+    stretch to end, up to a whole turn; shorter turns bound that wait instead."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(interval_s)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
 
 
 def _session(dispatcher: Dispatcher, session_id: int) -> Session:
@@ -368,17 +555,15 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
     """Change a session's burr, shaft, materials or shared-memory publishing between two
     packets. Everything is checked before anything changes; the stream goes on.
 
-    A material table with other forbidden flags needs a scan of the grid: it runs here,
-    outside the loop's lock (the kernel releases the GIL), not in the next tick."""
-    from ..bone.bricks import forbidden_bricks
-
+    A material table with other forbidden flags needs new forbidden bricks: they are found
+    here, outside the loop's lock (a pass over a shared bone's bricks, or the voxels of a
+    private one; either kernel releases the GIL), not in the next tick."""
     with lock:
         engine = _session(dispatcher, session_id).engine
         grid, current = engine.grid, engine.materials
     bricks = None
     if materials is not None and not np.array_equal(materials.forbidden, current.forbidden):
-        bricks = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
-        forbidden_bricks(grid.density, grid.labels, materials.forbidden, bricks)
+        bricks = engine.forbidden_bricks_for(materials)
     with lock:
         session = _session(dispatcher, session_id)
         engine = session.engine

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import secrets
 import time
 from dataclasses import dataclass, field
 
@@ -14,7 +15,6 @@ from ...proto.codec import check_pose_values, encode_reply_values
 from ...proto.messages import (
     BAD_VALUE,
     DUPLICATE,
-    FLAG_NEW_STREAM,
     FLAG_NO_CARVE,
     FLAG_RESET_VELOCITY,
     OK,
@@ -52,6 +52,11 @@ ZERO3 = (0.0, 0.0, 0.0)
 #: Model-stage times kept per session for statistics (a ring buffer).
 TICK_TIMES_KEPT = 8192
 _TICK_EPOCHS = itertools.count(1)
+_STREAM_MODULUS = 1 << 32
+#: NEW_STREAM / WRONG_STREAM notices per second per session, and the burst: a handshake
+#: needs one or two; a session of its own so a flood elsewhere cannot starve it.
+STREAM_NOTICE_RATE_HZ = 100.0
+STREAM_NOTICE_BURST = 20.0
 
 
 @dataclass(frozen=True)
@@ -66,8 +71,6 @@ class SessionConfig:
             lies in the engine's world: engine units and an engine quaternion (x, y, z, w).
         gap_s: a longer silence between accepted packets (client clock) resets the velocity
             estimate.
-        idle_restart_s: after this long (server clock) without an accepted packet, any
-            sequence number starts a new stream (a restarted engine counts from 0 again).
         max_speed_mm_s: an estimated burr speed above this is a teleport: the estimate is
             reset, not used.
         model: run the bone stage (carving, force). Off, the session answers with zero force:
@@ -82,7 +85,6 @@ class SessionConfig:
     placement_position: frames.Vec3 = ZERO3
     placement_orientation: frames.Quat = (0.0, 0.0, 0.0, 1.0)
     gap_s: float = 0.05
-    idle_restart_s: float = 1.0
     max_speed_mm_s: float = 2000.0
     model: bool = True
     carve: bool = True
@@ -93,8 +95,7 @@ class SessionConfig:
         frames.frame(self.frame)
         if self.tool_axis is not None:  # stored as unit vectors (frozen: set directly)
             object.__setattr__(self, "tool_axis", _unit("tool_axis", self.tool_axis))
-        for name, value in (("gap_s", self.gap_s), ("idle_restart_s", self.idle_restart_s),
-                            ("max_speed_mm_s", self.max_speed_mm_s)):
+        for name, value in (("gap_s", self.gap_s), ("max_speed_mm_s", self.max_speed_mm_s)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not 0.0 < value < math.inf:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
@@ -122,21 +123,46 @@ def _unit(name: str, v: tuple[float, ...], n: int = 3) -> tuple[float, ...]:
 class Session:
     """One engine streaming poses to one bone engine.
 
-    Owns the sequence state, the velocity estimate and the frame conversion: :meth:`admit`
-    orders datagrams, :meth:`respond` answers each admitted one. Not thread-safe: the hot loop
-    serializes access.
+    Owns the stream and sequence state, the velocity estimate and the frame conversion:
+    :meth:`hello` and :meth:`commit` open streams (SPEC.md 5.2), :meth:`admit` orders a
+    stream's datagrams, :meth:`respond` answers each admitted one. Not thread-safe: the hot
+    loop serializes access.
+
+    Streams: ``stream`` is the open one (0: none), ``offer`` the one a hello was answered with
+    (0: none), ``next_stream`` the next number to offer. Numbers only go forward (mod 2^32,
+    skipping 0), so a stream once ended never opens again and a captured datagram of it is
+    never answered.
     """
 
     def __init__(self, session_id: int, engine: BoneEngine, config: SessionConfig | None = None,
-                 key: bytes | None = None) -> None:
+                 key: bytes | None = None, *, next_stream: int | None = None) -> None:
+        """``next_stream``: the first stream number to offer (nonzero uint32); None: a random
+        one. The control plane passes the last journaled stream + 65536 after a restart, so
+        no number offered before the restart is offered again."""
         if not (isinstance(session_id, int) and 0 <= session_id < 1 << 32):
             raise ValueError(f"session id must be an unsigned 32-bit integer, got {session_id!r}")
+        if next_stream is None:
+            next_stream = secrets.randbelow(_STREAM_MODULUS - 1) + 1
+        elif (isinstance(next_stream, bool) or not isinstance(next_stream, int)
+              or not 0 < next_stream < _STREAM_MODULUS):
+            raise ValueError(f"next_stream must be a nonzero unsigned 32-bit integer, got "
+                             f"{next_stream!r}")
         self.id = session_id
         self.engine = engine
         self.key = key
         self.tagger = Tagger(key) if key is not None else None
+        self.stream = 0
+        self.offer = 0
+        self.next_stream = next_stream
+        self.last_seq: int | None = None
+        #: The session's notice buckets, [NEW_STREAM, WRONG_STREAM]: tokens, refilled at.
+        #: Two, so that replayed POSEs of closed streams (answered WRONG_STREAM) cannot use
+        #: up the answers a client's hellos need.
+        self.notice_tokens = [STREAM_NOTICE_BURST, STREAM_NOTICE_BURST]
+        self.notice_ns = [0, 0]
         self.counters = {"accepted": 0, "stale": 0, "duplicate": 0, "bad_value": 0,
-                         "internal": 0, "restarts": 0, "velocity_resets": 0, "teleports": 0}
+                         "internal": 0, "hellos": 0, "streams": 0, "wrong_stream": 0,
+                         "velocity_resets": 0, "teleports": 0}
         self.tick_ns = np.zeros(TICK_TIMES_KEPT, dtype=np.int64)
         self.ticks_timed = 0
         #: Names this session's count of timed ticks: a new session under the same id, or
@@ -153,9 +179,9 @@ class Session:
         self.configure(config if config is not None else SessionConfig())
 
     def configure(self, config: SessionConfig) -> None:
-        """Apply ``config``. A change of frame, tool axis or placement restarts the stream
-        (positions before and after it do not compare); features and limits apply to the
-        next packet of the same stream."""
+        """Apply ``config``. A change of frame, tool axis or placement restarts the velocity
+        estimate and the haptic stage (positions before and after it do not compare); the
+        stream and its sequence go on. Features and limits apply to the next packet."""
         frame = frames.frame(config.frame)
         grid = self.engine.grid
         old = getattr(self, "config", None)
@@ -183,7 +209,7 @@ class Session:
         self._limited = self.haptics.limited
         self.engine_changed()
         if geometry_changed:
-            self.restart_stream()
+            self._forget_motion()
 
     def publish_bone(self, on: bool) -> None:
         """Keep (or stop) the counters that let the control plane read a shared bone while it
@@ -199,11 +225,16 @@ class Session:
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
         self._radius_mm = self.engine.params.radius_mm
 
-    def restart_stream(self) -> None:
-        """Forget the sequence and velocity state: the next packet starts a new stream."""
-        self.last_seq: int | None = None
-        self.last_accept_ns = 0
-        self._last_t_client_us = -1
+    def end_stream(self) -> None:
+        """End the open stream and forget any offer: the client's next POSE gets
+        WRONG_STREAM and it says hello again (REST ``restart-stream``)."""
+        self.stream = 0
+        self.offer = 0
+        self.last_seq = None
+        self._forget_motion()
+
+    def _forget_motion(self) -> None:
+        """Forget the velocity estimate, the haptic stage's state and the last carve."""
         self._prev_t_us: int | None = None
         self._t0_us = 0
         self._vel = ZERO3
@@ -215,21 +246,45 @@ class Session:
         self.haptics.restart()
         self.engine.forget_last_carve()
 
-    # -- the hot path -----------------------------------------------------------------------
-    def admit(self, seq: int, now_ns: int, flags: int = 0, t_client_us: int = 0) -> int:
-        """OK if ``seq`` is the newest this stream has seen, else STALE or DUPLICATE.
+    # -- streams (SPEC.md 5.2) ---------------------------------------------------------------
+    def hello(self) -> int:
+        """The stream offered to a hello: the same offer until it is committed. The open
+        stream is untouched (a replayed hello cannot disturb it)."""
+        self.counters["hellos"] += 1
+        if self.offer == 0:
+            self.offer = self.next_stream
+            self.next_stream = (self.next_stream + 1) % _STREAM_MODULUS or 1
+        return self.offer
 
-        A new stream starts (any ``seq`` accepted) after the session has been idle for
-        ``idle_restart_s``, or with FLAG_NEW_STREAM if its timestamp is later than the last
-        accepted one: a captured new-stream datagram replayed later is stale by its clock.
-        """
+    def commit(self) -> None:
+        """A POSE carried the offered stream: it becomes the open one, with a fresh sequence
+        and velocity state (its first tick is STALE); the previous stream is over."""
+        self.stream = self.offer
+        self.offer = 0
+        self.last_seq = None
+        self.counters["streams"] += 1
+        self._forget_motion()
+
+    def stream_notice_allowed(self, now_ns: int, wrong_stream: bool = False) -> bool:
+        """Take a token from the session's NEW_STREAM (or WRONG_STREAM) notice bucket."""
+        k = 1 if wrong_stream else 0
+        tokens = self.notice_tokens[k]
+        if now_ns > self.notice_ns[k]:  # (a clock that steps back refills nothing)
+            tokens = min(STREAM_NOTICE_BURST,
+                         tokens + (now_ns - self.notice_ns[k]) * 1e-9 * STREAM_NOTICE_RATE_HZ)
+            self.notice_ns[k] = now_ns
+        if tokens < 1.0:
+            self.notice_tokens[k] = tokens
+            return False
+        self.notice_tokens[k] = tokens - 1.0
+        return True
+
+    # -- the hot path -----------------------------------------------------------------------
+    def admit(self, seq: int) -> int:
+        """OK if ``seq`` is the newest the open stream has seen (any, on its first POSE), else
+        STALE or DUPLICATE. Streams never restart by themselves (no idle restart): only a
+        commit starts a sequence afresh."""
         last = self.last_seq
-        if last is not None and seq != last and (
-                (flags & FLAG_NEW_STREAM and t_client_us > self._last_t_client_us)
-                or now_ns - self.last_accept_ns > self.config.idle_restart_s * 1e9):
-            self.counters["restarts"] += 1
-            self.restart_stream()
-            last = None
         if last is not None and not seq_after(seq, last):
             if seq == last:
                 self.counters["duplicate"] += 1
@@ -237,8 +292,6 @@ class Session:
             self.counters["stale"] += 1
             return STALE
         self.last_seq = seq
-        self.last_accept_ns = now_ns
-        self._last_t_client_us = t_client_us
         return OK
 
     def respond(self, pose: Pose, t_recv_ns: int) -> tuple[bytes, int]:
@@ -434,7 +487,8 @@ class Session:
         self.ticks_timed = 0
         self.tick_epoch = next(_TICK_EPOCHS)
         self.last_force_N = 0.0
-        self.restart_stream()
+        self.notice_tokens = [STREAM_NOTICE_BURST, STREAM_NOTICE_BURST]
+        self.end_stream()
 
     def tick_times_us(self) -> np.ndarray:
         """The last (up to TICK_TIMES_KEPT) model-stage times, oldest first, µs."""
@@ -450,6 +504,8 @@ class Session:
             "session": self.id,
             "frame": self.config.frame,
             "authenticated": self.tagger is not None,
+            "stream": self.stream,
+            "next_stream": self.next_stream,
             **self.counters,
             "bone_version": self.engine.grid.version,
             "removed_mm3": self.engine.removed_mm3_by_material(),

@@ -18,7 +18,7 @@ from harness import TICKS, check_groove, check_mesh_obj, run_json
 ROOT = Path(__file__).resolve().parents[2]
 SDK = ROOT / "client" / "cpp"
 VECTORS = ROOT / "proto" / "vectors" / "vectors.json"
-PROGRAMS = ("vectors", "groove", "errors", "mesh", "robustness")
+PROGRAMS = ("vectors", "groove", "errors", "mesh", "robustness", "handshake")
 FLAGS = ["-std=c++17", "-O2", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-pthread"]
 COMPILE_TIMEOUT_S = 300
 
@@ -52,15 +52,21 @@ def _server_args(live_server) -> list[str]:
 
 
 def test_cpp_vectors(cpp_bins):
-    """Every golden vector, byte for byte both ways, its tag verified and every single-byte
-    change and another key rejected; non-canonical forms decode; fuzzing does not crash."""
+    """Every golden vector (protocol v2, the hello, NEW_STREAM, WRONG_STREAM and v1's
+    BAD_VERSION notice among them), byte for byte both ways, its tag verified and every
+    single-byte change and another key rejected; non-canonical forms decode; fuzzing does
+    not crash; SessionRules follow the stream handshake (offline)."""
     got = run_json([str(cpp_bins["vectors"]), str(VECTORS)], timeout_s=60)
     vectors = json.loads(VECTORS.read_text())
+    names = {v["name"] for v in vectors}
+    assert {"pose_hello", "notice_new_stream", "notice_wrong_stream",
+            "notice_bad_version_v1"} <= names, sorted(names)
     assert got["failures"] == []
     assert got["vectors"] == len(vectors)
     assert got["encoded"] == got["decoded"] == len(vectors)
     assert got["tag_checked"] == sum(v["key_hex"] is not None for v in vectors)
     assert got["fuzzed"] > 10_000
+    assert got["stream_rule_checks"] >= 25
 
 
 def test_cpp_vectors_sanitized(tmp_path):
@@ -174,7 +180,9 @@ def test_cpp_errors(cpp_bins, live_server):
     assert got["unknown_session"]["kind"] == "notice"
     assert got["unknown_session"]["error"] == 5
     assert got["bad_tag"]["kind"] == "notice" and got["bad_tag"]["error"] == 6
+    assert got["opened"]
     assert got["first"]["kind"] == "reply" and got["first"]["error"] == 0
+    assert got["first"]["status"] & 16  # STALE: the first tick of a stream
     assert got["duplicate"]["kind"] == "none"
     assert got["nan_valid_locally"] is False
     bad = got["bad_value"]
@@ -207,6 +215,67 @@ def test_cpp_errors(cpp_bins, live_server):
     assert got["view_state"] == "ready" and got["deleted"]
 
 
+def test_cpp_handshake(cpp_bins, live_server):
+    """Protocol v2's streams (tests/handshake.cpp): a hello opens a stream; a restarted
+    client (new object, same key, seq from 1 again, right after the old stream was used) is
+    answered from its first hello and its first POSE on, with no idle wait; captured
+    datagrams of an earlier stream get WRONG_STREAM, never a REPLY, and a replayed hello
+    leaves the live stream alone; the refused old client says hello again; a REST
+    restart-stream is recovered from by the Streamer itself."""
+    got = run_json([str(cpp_bins["handshake"]), *_server_args(live_server)], timeout_s=120)
+    print(json.dumps(got))
+    assert "error" not in got and "streamer_error" not in got, got
+    new_stream, wrong_stream, stale = 11, 12, 16
+    hello = got["a_hello"]
+    assert hello["kind"] == "notice" and hello["error"] == new_stream and hello["verified"]
+    assert hello["stream_changed"] and hello["stream"] == got["a_stream"] != 0
+    assert got["a_first"]["kind"] == "reply" and got["a_first"]["error"] == 0
+    assert got["a_first"]["status"] & stale
+    assert got["a_replies"] == 20
+    assert got["captured_stream"] == got["a_stream"]
+    # The restarted client: its first hello (seq 1) answered with a stream of its own, its
+    # first POSE (seq 2, older than the old stream's) ticked.
+    b_hello, b_first = got["b_hello"], got["b_first"]
+    assert b_hello["kind"] == "notice" and b_hello["error"] == new_stream, b_hello
+    assert b_hello["seq"] == 1 and b_hello["verified"] and b_hello["stream_changed"]
+    assert got["b_stream"] == b_hello["stream"] not in (0, got["a_stream"])
+    assert got["b_hellos_sent"] == 1
+    assert b_first["kind"] == "reply" and b_first["error"] == 0 and b_first["seq"] == 2
+    assert b_first["seq"] < got["captured_seq"] and b_first["status"] & stale
+    assert got["b_replies"] == 20
+    # Replays: no REPLY; the old stream's POSE is refused with a tagged WRONG_STREAM naming
+    # that stream; the hello gets an offer (tagged NEW_STREAM) and nothing else.
+    rp = got["replayed_pose"]
+    assert rp["replies"] == 0 and rp["notices"] == 1 and rp["verified"] == 1, rp
+    assert set(rp["errors"]) == {wrong_stream} and set(rp["streams"]) == {got["a_stream"]}, rp
+    rh = got["replayed_hello"]
+    assert rh["replies"] == 0 and rh["notices"] == 1 and rh["errors"] == [new_stream], rh
+    assert got["a_stream"] not in rh["streams"] and got["b_stream"] not in rh["streams"], rh
+    b_after = got["b_after_replays"]
+    assert b_after["kind"] == "reply" and b_after["error"] == 0, b_after
+    assert got["b_stream_after_replays"] == got["b_stream"]
+    # The old client: refused on its closed stream, then a stream of its own again.
+    refused = got["a_refused"]
+    assert refused["kind"] == "notice" and refused["error"] == wrong_stream, refused
+    assert refused["stream"] == got["a_stream"] and refused["stream_changed"]
+    assert got["a_stream_after_refusal"] == 0 and got["a_reopened"]
+    assert got["a_new_stream"] not in (0, got["a_stream"], got["b_stream"])
+    assert got["a_again"]["kind"] == "reply" and got["a_again"]["error"] == 0
+    # Streamers (the second one a restart of the first): hellos until the stream, and the
+    # first tick sent on it is the first one answered.
+    for run in ("streamer_0", "streamer_1"):
+        st = got[run]
+        assert st["finished"] and st["streams"] == 1 and st["stream"] != 0, st
+        assert st["first_stream_tick"] >= 1 and 1 <= st["hellos"] <= st["first_stream_tick"], st
+        assert st["first_reply_tick"] == st["first_stream_tick"], st
+    assert got["streamer_0"]["stream"] != got["streamer_1"]["stream"]
+    rr = got["rest_restart"]
+    assert rr["streaming"] and rr["recovered"] and not rr["failed"], rr
+    assert rr["stream_before"] != 0 and rr["stream_after"] not in (0, rr["stream_before"]), rr
+    assert rr["streams"] == 2 and rr["streams_lost"] == 1 and rr["wrong_stream_notices"] >= 1
+    assert rr["replies_after"] >= 50, rr
+
+
 def test_cpp_robustness(cpp_bins, live_server):
     """The SDK at its edges (tests/robustness.cpp): exceptions end the stream, not the
     process; restart_stream() in publish mode is answered; rtt_us is the send-to-reply time;
@@ -223,8 +292,10 @@ def test_cpp_robustness(cpp_bins, live_server):
     # The pose was stamped 30 ms before it was published and then held for 300 ms: SPEC
     # 5.5's sample-based rtt holds that age, the send-based one only the loopback trip.
     assert pub["valid"] and 0 <= pub["rtt_us"] < 20_000 and pub["sample_rtt_us"] >= 300_000, pub
-    # Without a re-stamp the new stream's POSEs repeat the old t_client_us and are dropped.
+    # restart_stream() says hello again: a new stream, answered although the held pose's
+    # t_client_us repeats the old stream's.
     assert pub["replies_after_restart"] > 100 and pub["valid_after_restart"], pub
+    assert pub["stream_after_restart"] not in (0, pub["stream_before_restart"]), pub
     c = got["coupled"]
     assert c["valid"] and c["stiffness"] > 0 and c["proxy_norm"] > 1.0, c
     assert not c["stale_valid"] and c["stale_proxy_norm"] == 0 and c["stale_stiffness"] == 0

@@ -121,11 +121,15 @@ def test_self_checks(program):
 
 
 def test_streamer_schedule_and_stalls(program):
-    """Against a local UDP sink: POSEs stamped on the absolute 1 ms schedule with consecutive
-    seqs and NEW_STREAM until a REPLY; a 40 ms stall skips the missed ticks (no burst), a
-    5 ms one sends them late."""
+    """Against a local UDP sink that plays the server's side of the handshake: POSEs stamped
+    on the absolute 1 ms schedule with consecutive seqs, hellos until a tagged NEW_STREAM
+    answers one (forged, unsolicited and repeated ones change nothing), that stream until a
+    tagged WRONG_STREAM about it, then hellos again; a 40 ms stall skips the missed ticks (no
+    burst), a 5 ms one sends them late."""
     got = run_json([*program, "stall"], timeout_s=60)
     assert got["failures"] == [], got
+    assert got["streams"] == [0, 77, 0], got
+    assert 0 < got["hellos"] < got["sent"], got
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +141,10 @@ def si_groove(program, live_server) -> dict:
 def test_groove_si_mm(si_groove, python_groove):
     check_groove(si_groove, python_groove)
     assert si_groove["sent"] + si_groove["skipped_ticks"] == TICKS
-    assert si_groove["error_replies"] == 0 and si_groove["notices"] == 0, si_groove
+    assert si_groove["error_replies"] == 0, si_groove
+    # One stream, taken with hellos before the first tick; no other notice.
+    assert si_groove["notices"] == si_groove["new_stream_notices"] == 1, si_groove
+    assert si_groove["hellos"] >= 1, si_groove
     # 1000 ticks of the streamer thread (send, receive, verify, decode, hand-off): no garbage.
     assert si_groove["allocated_bytes_1000_ticks"] == 0, si_groove
     print("C# si_mm groove", si_groove, "python", python_groove)
@@ -181,6 +188,23 @@ def test_error_answers(program, live_server):
     assert got["bad_value_error"] == 7
     assert got["duplicate_answers"] == 0
     assert got["malformed_notice"] == 1
+    assert got["bad_version_notice"] == 3
+
+
+def test_stream_handshake(program, live_server):
+    """Streams are the server's (wire protocol 2): a new client object with the same key,
+    numbering from 1 again right after another client's stream was used, gets its own stream
+    from its first hello and a REPLY to its second datagram (no second of silence as in v1); a
+    captured POSE of the earlier stream sent again gets WRONG_STREAM, never a REPLY; a replayed
+    hello leaves the open stream alone; after a REST restart-stream the client says hello by
+    itself; a new Streamer streams at once."""
+    got = run_json([*program, "handshake", *_rest_args(live_server)], timeout_s=120)
+    assert got["failures"] == [], got
+    assert got["b_datagrams_to_first_reply"] == 2, got
+    assert got["replay_notice"] == 12 and got["replay_replies"] == 0, got
+    assert len(set(got["streams"])) == 3 and 0 not in got["streams"], got
+    assert got["streamer_hellos"] >= 1, got
+    print("C# handshake", got)
 
 
 def test_mesh_chunks(program, live_server, rest, tmp_path):

@@ -97,13 +97,34 @@ def test_golden_vectors(tmp_path):
     assert got["vectors"] == len(vectors)
     assert got["encoded"] == got["decoded"] == len(vectors), got
     assert got["verified"] == got["rejected_key"] == got["rejected_bytes"] == tagged, got
+    # The v2 vectors, the handshake's among them, and v1's BAD_VERSION notice.
+    names = {v["name"] for v in vectors}
+    assert {"pose_hello", "notice_new_stream", "notice_wrong_stream",
+            "notice_bad_version_v1"} <= names, names
+    assert {v["version"] for v in vectors} == {1, 2}, vectors
 
 
 def test_offline_checks():
-    """Core scripts parse; RFC 1982; decoder forms, limits and garbage; mesh bounds checks."""
+    """Core scripts parse; RFC 1982; decoder forms, limits and garbage; mesh bounds checks;
+    the client's side of the stream handshake."""
     got = run_godot("test_strict.gd", timeout_s=120)
     assert got["failures"] == [], got
     assert len(got["parsed"]) == 13, got
+    h = got["handshake"]
+    # Forged, untagged, foreign, unsolicited (seq, stamp), streamless, and a WRONG_STREAM
+    # without a stream: none gives or takes a stream.
+    assert h["refused_offers"] == ["bad_tag", "bad_tag", "foreign", "ignored", "ignored",
+                                   "ignored", "ignored"], h
+    assert h["reply_to_hello"] == "unsolicited", h  # hellos get no REPLY
+    assert h["adopted"] == ["notice", True, 40], h
+    # Streaming: a late second offer and a WRONG_STREAM for another stream change nothing.
+    assert h["while_streaming"] == [False, False, "reply", 40], h
+    assert h["closed"] == ["bad_tag", True, 0], h
+    # After the stream closed: hello again; an offer answering a hello of the previous round
+    # is ignored, this round's taken; seq counts on (13, 14).
+    assert h["reopened"] == [0, False, True, 42, 14], h
+    assert h["unkeyed"] == [True, 5], h
+    assert h["v1_bad_version"] == ["notice", 3, 1], h
 
 
 def _groove(live_server, rest, frame: str) -> dict:
@@ -151,6 +172,7 @@ def test_error_answers(live_server, rest):
         rest.delete_session(s["id"])
     assert [e["error"] for e in got["unknown_session"]] == [5], got  # UNKNOWN_SESSION
     assert [e["error"] for e in got["bad_tag"]] == [6], got  # BAD_TAG
+    assert got["opened"], got
     dup = got["duplicate"]
     assert [(e["kind"], e["error"]) for e in dup["first"]] == [("reply", 0)], got
     assert dup["again"] == [], got  # a duplicate is never answered
@@ -161,7 +183,11 @@ def test_error_answers(live_server, rest):
         [("reply", bv["sent_seq"] + 1, 0)], got
     assert bv["reused_seq"] == [], got  # the NaN POSE's seq was consumed
     assert [e["error"] for e in got["malformed"]] == [1], got  # MALFORMED
+    # A v1 POSE: BAD_VERSION in v1's own NOTICE shape.
+    assert got["bad_version"] == [{"kind": "notice", "error": 3, "version": 1}], got
     st = got["streamer"]
+    # From seq 1, right after the seq-1000 stream above: a stream of its own, no idle wait.
+    assert st["streams"] == 1, got
     assert st["error"] == 7 and st["error_replies"] >= 10 and not st["fresh"], got
     assert st["force"] == [0.0, 0.0, 0.0] and st["vibration_amplitude"] == 0.0, got
     # A 30 ms stall: the missed ticks are skipped and counted, not sent in a burst.
@@ -171,9 +197,66 @@ def test_error_answers(live_server, rest):
     assert stall["first_after_stall"] >= stall["stalled_at"] + 29, got  # 30 ms skipped
     assert stall["close_sends_after"] <= 3, got  # a burst would send ~30 back to back
     assert stall["stamps_on_schedule"], got
-    # Its stamps carried a wall-clock-sized offset: answered all the same, round trips sane.
-    assert stall["first_stamp_us"] > 2**32 and stall["replies"] >= 0.9 * stall["sent"], got
+    # Hellos until the stream opened, then a REPLY for (nearly) every POSE.
+    assert stall["streams"] == 1 and 1 <= stall["hellos"] < stall["sent"], got
+    assert stall["replies"] >= 0.9 * (stall["sent"] - stall["hellos"]), got
     assert 0 < stall["rtt_us"] < 100_000, got
+
+
+def test_stream_handshake(live_server, rest):
+    s = new_session(rest)
+    try:
+        got = run_godot("test_handshake.gd", *_endpoint(live_server, s),
+                        f"--url={live_server['http_url']}", f"--token={live_server['token']}",
+                        timeout_s=120)
+    finally:
+        rest.delete_session(s["id"])
+    print("godot handshake:", json.dumps(got))
+
+    def one(rows, kind, error=None):
+        """The single datagram as the first Rules judged it: [kind, error, seq, stream,
+        changed, status]."""
+        assert len(rows) == 1, rows
+        row = rows[0][0]
+        assert row[0] == kind and (error is None or row[1] == error), rows
+        return row
+
+    new_stream, wrong_stream = 11, 12
+    hello = one(got["a_hello"], "notice", new_stream)
+    assert hello[2] == 1 and hello[4] is True and hello[3] == got["a"]["stream"] != 0, got
+    assert got["a"]["replies"] == 20 and got["a"]["next_seq"] == 22, got
+    # B from seq 1 right after A reached seq 21: its first hello opens a stream of its own,
+    # and its very next POSE (seq 2) is answered, STALE only on that first tick.
+    b_hello = one(got["b_hello"], "notice", new_stream)
+    assert b_hello[2] == 1 and b_hello[4] is True, got
+    b = got["b"]
+    assert b["stream"] not in (0, got["a"]["stream"]), got
+    replies = [one(p, "reply", 0) for p in b["poses"]]
+    assert [r[2] for r in replies] == [2, 3, 4], got
+    stale = 16
+    assert [bool(r[5] & stale) for r in replies] == [True, False, False], got
+    # A's POSE replayed: WRONG_STREAM for A's stream, tagged (A's rules believe it and say
+    # hello again); B's rules ignore it, and B streams on.
+    (a_view, b_view), = got["replayed_pose"]
+    assert a_view[:2] == ["notice", wrong_stream] and a_view[3] == got["a"]["stream"], got
+    assert a_view[4] is True and b_view[0] == "notice" and b_view[4] is False, got
+    one(got["after_replayed_pose"], "reply", 0)
+    # A's hello replayed: an offer nobody takes; B's stream untouched.
+    (a_view, b_view), = got["replayed_hello"]
+    assert a_view[:2] == ["notice", new_stream] and a_view[4] is False, got
+    assert b_view[4] is False, got
+    one(got["after_replayed_hello"], "reply", 0)
+    assert got["states"] == {"a": 0, "b": b["stream"]}, got
+    # REST restart-stream under a running streamer: it was told (WRONG_STREAM), said hello,
+    # got a second stream and streamed on.
+    st = got["streamer"]
+    assert st["restart_status"] == 204, got
+    assert st["before"]["streams"] == 1 and st["before"]["stream"] != 0, got
+    after = st["after"]
+    assert after["streams"] == 2 and after["stream"] not in (0, st["before"]["stream"]), got
+    assert after["wrong_stream"] >= 1 and after["new_stream"] >= 2, got
+    assert after["replies"] >= st["before"]["replies"] + 20, got
+    assert after["dropped"] == {}, got
 
 
 def test_rest_helper(live_server):

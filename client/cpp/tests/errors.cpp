@@ -2,8 +2,9 @@
 // Copyright (c) 2026 the burrforce authors
 //
 // SPEC 3.4's error answers as the SDK sees them, against a live server: UNKNOWN_SESSION and
-// BAD_TAG notices, a BAD_VALUE error REPLY (seq consumed, force zero), silence for a
-// duplicate datagram, a MALFORMED notice for a wrong element count; and the Streamer's
+// BAD_TAG notices (to a hello: the session and the tag are checked before the stream), a
+// BAD_VALUE error REPLY (seq consumed, force zero), silence for a duplicate datagram, a
+// MALFORMED notice for v1's element count under version 2; and the Streamer's
 // rendering rules: zero force after an error REPLY and once REPLYs stop (SPEC 7.6).
 // Usage: errors --url HTTP_URL --token TOKEN. Prints one JSON line.
 #include <cmath>
@@ -67,6 +68,7 @@ int main(int argc, char** argv) {
     }
     {
       Client c(s.udp_host, s.udp_port, s.id, s.key, 500);
+      out << ", \"opened\": " << (c.open_stream(above_bone(), kWaitUs) ? "true" : "false");
       Event first = c.exchange(above_bone(), kWaitUs);
       out << ", \"first\": " << event_json(first);
       // DUPLICATE: the same bytes again are never answered.
@@ -85,11 +87,11 @@ int main(int argc, char** argv) {
       // The next POSE is processed again, its velocity estimate restarted (STALE).
       Event after = c.exchange(above_bone(), kWaitUs);
       out << ", \"after_bad_value\": " << event_json(after);
-      // MALFORMED: a valid header, 11 elements instead of 12.
+      // MALFORMED: a valid v2 header on v1's layout (12 elements, no stream).
       uint8_t buf[256];
       msgpack::Writer w(buf, sizeof buf);
-      w.array(11);
-      w.uint(1);
+      w.array(12);
+      w.uint(kVersion);
       w.uint(kTypePose);
       w.uint(s.id);
       w.uint(c.rules().next_seq() + 5);
@@ -101,6 +103,7 @@ int main(int argc, char** argv) {
       w.boolean(true);
       w.nil();
       w.uint(0);
+      w.nil();
       c.send_raw(buf, w.size());
       Event malformed = c.receive(kWaitUs);
       out << ", \"malformed\": " << event_json(malformed);

@@ -14,4 +14,4 @@
 
 #include "burrforce/burrforce.hpp"
 
-int main() { return burrforce::kVersion == 1 ? 0 : 1; }
+int main() { return burrforce::kVersion == 2 ? 0 : 1; }

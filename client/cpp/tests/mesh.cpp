@@ -154,6 +154,12 @@ int main(int argc, char** argv) {
     std::ofstream(obj_path, std::ios::binary) << obj;
     out << ", \"stream_finished\": " << (finished ? "true" : "false")
         << ", \"replies\": " << streamer.counters().replies.load()
+        << ", \"sent\": " << streamer.counters().sent.load()
+        << ", \"skipped_ticks\": " << streamer.counters().skipped_ticks.load()
+        << ", \"hellos\": " << streamer.counters().hellos.load()
+        << ", \"streams\": " << streamer.counters().streams.load()
+        << ", \"streams_lost\": " << streamer.counters().streams_lost.load()
+        << ", \"notices\": " << streamer.counters().notices.load()
         << ", \"initial_have\": " << initial_have << ", \"initial_chunks\": " << initial_chunks
         << ", \"initial_triangles\": " << initial_tris
         << ", \"last_bone_version\": " << last_version

@@ -2,12 +2,12 @@
 // Copyright (c) 2026 the burrforce authors
 //
 // The SDK's behaviour at the edges, against a live server: a throwing PoseSource or callback
-// ends the stream (not the process) with zero force; restart_stream() in publish mode is
-// answered although no new pose is published; rtt_us is measured from the send, not the
-// pose's sample time; a stale coupled state clears the proxy too; MeshSync backs off when an
-// announced version is never reached and does not poll before the first REPLY; the HTTP
-// client decodes chunked trailers, rejects a bad Content-Length as RestError and bounds a
-// connect that is never answered.
+// ends the stream (not the process) with zero force; restart_stream() in publish mode gets
+// a new stream, answered although no new pose is published; rtt_us is measured from the
+// send, not the pose's sample time; a stale coupled state clears the proxy too; MeshSync
+// backs off when an announced version is never reached and does not poll before the first
+// REPLY; the HTTP client decodes chunked trailers, rejects a bad Content-Length as
+// RestError and bounds a connect that is never answered.
 // Usage: robustness --url HTTP_URL --token TOKEN; prints one JSON line.
 #include <atomic>
 #include <chrono>
@@ -136,7 +136,8 @@ int main(int argc, char** argv) {
 
     // 2. Publish mode: one pose, stamped 30 ms before it is published (an engine frame's
     //    age). rtt_us is the network round trip; sample_rtt_us (SPEC 5.5) includes the age.
-    //    Then restart_stream() without publishing again: REPLYs must resume.
+    //    Then restart_stream() without publishing again: a hello, a new stream, and REPLYs
+    //    resume (the held pose's t_client_us repeats: a new stream does not care).
     {
       Streamer st(config_for(s));
       st.start();
@@ -146,6 +147,7 @@ int main(int argc, char** argv) {
       sleep_ms(300);
       HapticState h = st.state();
       uint64_t before = st.counters().replies.load();
+      const uint32_t stream_before = st.stream();
       st.restart_stream();
       sleep_ms(300);
       uint64_t after = st.counters().replies.load();
@@ -155,7 +157,9 @@ int main(int argc, char** argv) {
           << ", \"sample_rtt_us\": " << h.sample_rtt_us
           << ", \"replies_before_restart\": " << before
           << ", \"replies_after_restart\": " << after - before
-          << ", \"valid_after_restart\": " << tf(h2.valid) << "}";
+          << ", \"valid_after_restart\": " << tf(h2.valid)
+          << ", \"stream_before_restart\": " << stream_before
+          << ", \"stream_after_restart\": " << st.stream() << "}";
     }
 
     // 3. Coupled output (a device profile): the proxy is set while REPLYs arrive, and goes

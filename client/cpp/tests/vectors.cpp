@@ -5,7 +5,8 @@
 // encode each vector's fields to exactly its bytes, decode its bytes to exactly its fields
 // (floats bit for bit), verify its tag with the key, reject it with another key and after
 // every single-byte change. Also: non-canonical forms SPEC 2.2 allows decode to the same
-// values, and truncated or mutated datagrams never crash the decoder.
+// values, truncated or mutated datagrams never crash the decoder, and SessionRules follow
+// the v2 stream handshake (offline: notices built here).
 // Usage: vectors VECTORS_JSON. Prints one JSON line; exit status 1 on any failure.
 #include <chrono>
 #include <cmath>
@@ -58,6 +59,7 @@ Pose pose_of(const json::Value& f) {
   p.has_velocity = !f["velocity"].is_null();
   if (p.has_velocity) read_vec(f["velocity"], p.velocity, 3);
   p.flags = static_cast<uint32_t>(f["flags"].as_int());
+  p.stream = static_cast<uint32_t>(f["stream"].as_int());
   return p;
 }
 
@@ -87,12 +89,16 @@ Reply reply_of(const json::Value& f) {
   return r;
 }
 
-Notice notice_of(const json::Value& f) {
+// The version is not among a vector's fields: a NOTICE's comes from its datagram (v1's
+// BAD_VERSION answer has v1's shape), any other message's is kVersion.
+Notice notice_of(const json::Value& f, uint32_t version) {
   Notice n;
+  n.version = version;
   n.session = static_cast<uint32_t>(f["session"].as_int());
   n.seq = static_cast<uint32_t>(f["seq"].as_int());
   n.t_client_us = static_cast<uint64_t>(f["t_client_us"].as_int());
   n.error = static_cast<uint16_t>(f["error"].as_int());
+  n.stream = f.has("stream") ? static_cast<uint32_t>(f["stream"].as_int()) : 0;
   return n;
 }
 
@@ -101,7 +107,8 @@ bool same(const Pose& a, const Pose& b) {
          same_vec(a.position, b.position, 3) && same_vec(a.orientation, b.orientation, 4) &&
          bits(a.rpm) == bits(b.rpm) && a.spindle_on == b.spindle_on &&
          a.has_velocity == b.has_velocity &&
-         (!a.has_velocity || same_vec(a.velocity, b.velocity, 3)) && a.flags == b.flags;
+         (!a.has_velocity || same_vec(a.velocity, b.velocity, 3)) && a.flags == b.flags &&
+         a.stream == b.stream;
 }
 
 bool same(const Reply& a, const Reply& b) {
@@ -122,8 +129,8 @@ bool same(const Reply& a, const Reply& b) {
 }
 
 bool same(const Notice& a, const Notice& b) {
-  return a.session == b.session && a.seq == b.seq && a.t_client_us == b.t_client_us &&
-         a.error == b.error;
+  return a.version == b.version && a.session == b.session && a.seq == b.seq &&
+         a.t_client_us == b.t_client_us && a.error == b.error && a.stream == b.stream;
 }
 
 // Known answers for the hash itself (FIPS 180-4 examples, RFC 4231 case 2), so a failure
@@ -152,8 +159,8 @@ void check_crypto() {
 // SPEC 2.2: the value counts, not the form. A POSE with a wider/signed integer, a float 32,
 // an integer where a float goes and an array 16 header must decode to the same values.
 void check_noncanonical() {
-  std::vector<uint8_t> b = {0xdc, 0x00, 0x0c,                     // array 16, 12 elements
-                            0x01, 0x01, 0xd2, 0x00, 0x00, 0x00, 0x07,  // session int 32
+  std::vector<uint8_t> b = {0xdc, 0x00, 0x0d,                     // array 16, 13 elements
+                            0x02, 0x01, 0xd2, 0x00, 0x00, 0x00, 0x07,  // session int 32
                             0xcf, 0, 0, 0, 0, 0, 0, 0, 0x02,       // seq uint 64
                             0xd1, 0x03, 0xe8,                      // t int 16 = 1000
                             0x93, 0xca, 0x3f, 0xc0, 0x00, 0x00,    // 1.5f
@@ -161,16 +168,18 @@ void check_noncanonical() {
                             0xd0, 0x05,                            // int 8: 5
                             0xdc, 0x00, 0x04, 0x00, 0x00, 0x00, 0x01,  // array 16 quaternion
                             0xcd, 0xea, 0x60,                      // rpm 60000 as uint 16
-                            0xc3, 0xc0, 0x04, 0xc0};
+                            0xc3, 0xc0, 0x04,                      // flags: reserved bit 2
+                            0xd3, 0, 0, 0, 0, 0, 0, 0x01, 0x00,    // stream int 64 = 256
+                            0xc0};
   Decoded d = decode(b.data(), b.size());
   const Pose& p = d.pose;
   if (!d.ok || p.session != 7 || p.seq != 2 || p.t_client_us != 1000 || p.position[0] != 1.5 ||
       p.position[1] != -1.0 || p.position[2] != 5.0 || p.orientation[3] != 1.0 ||
-      p.rpm != 60000.0 || !p.spindle_on || p.has_velocity || p.flags != 4)
+      p.rpm != 60000.0 || !p.spindle_on || p.has_velocity || p.flags != 4 || p.stream != 256)
     fail("noncanonical", "valid non-canonical POSE not decoded to its values");
   // Things that are not numbers or not bools must be refused.
   std::vector<uint8_t> bad = b;
-  bad[bad.size() - 4] = 0x01;  // spindle_on = 1 (an int is not a bool)
+  bad[bad.size() - 13] = 0x01;  // spindle_on = 1 (an int is not a bool)
   if (decode(bad.data(), bad.size()).ok) fail("noncanonical", "int accepted as bool");
   bad = b;
   bad[22] = 0x93;
@@ -179,6 +188,151 @@ void check_noncanonical() {
   bad = b;
   bad.push_back(0x00);  // trailing byte
   if (decode(bad.data(), bad.size()).ok) fail("noncanonical", "trailing byte accepted");
+  bad = b;
+  bad[bad.size() - 10] = 0xc0;  // a stream of nil
+  bad.erase(bad.end() - 9, bad.end() - 1);
+  if (decode(bad.data(), bad.size()).ok) fail("noncanonical", "nil accepted as stream");
+  // v1's 12-element POSE: readable header (so a server can answer BAD_VERSION), not a
+  // message of this version; likewise a v2 header on v1's layout.
+  bad = b;
+  bad[2] = 0x0c;
+  bad.erase(bad.end() - 10, bad.end() - 1);  // without the stream
+  for (uint8_t version : {uint8_t(1), uint8_t(2)}) {
+    bad[3] = version;
+    Decoded v = decode(bad.data(), bad.size());
+    if (v.ok || !v.header_ok || v.version != version)
+      fail("noncanonical", "a 12-element POSE of version " + std::to_string(version));
+  }
+  // Of v1 only the NOTICE decodes (7 elements, no stream); not with v2's 8.
+  const uint8_t v1_notice[] = {0x97, 0x01, 0x03, 0x07, 0x2a, 0x00, 0x03, 0xc0};
+  Decoded n1 = decode(v1_notice, sizeof v1_notice);
+  if (!n1.ok || n1.type != kTypeNotice || n1.notice.version != 1 ||
+      n1.notice.error != BAD_VERSION || n1.notice.stream != 0 || n1.session() != 7)
+    fail("noncanonical", "v1's BAD_VERSION notice");
+  const uint8_t v1_notice8[] = {0x98, 0x01, 0x03, 0x07, 0x2a, 0x00, 0x03, 0x00, 0xc0};
+  const uint8_t v2_notice7[] = {0x97, 0x02, 0x03, 0x07, 0x2a, 0x00, 0x03, 0xc0};
+  if (decode(v1_notice8, sizeof v1_notice8).ok || decode(v2_notice7, sizeof v2_notice7).ok)
+    fail("noncanonical", "a notice of the other version's length");
+}
+
+// SessionRules' stream handshake (protocol v2) without a server: hellos until an authentic
+// NEW_STREAM answers one of this round's hellos; forged, unsolicited, late and foreign
+// notices change nothing; a WRONG_STREAM for the current stream (and only that one) goes
+// back to hello; sequence numbers count on. Returns the number of checks made.
+int check_stream_rules() {
+  int checks = 0;
+  auto expect = [&](bool ok, const std::string& what) {
+    ++checks;
+    if (!ok) fail("stream_rules", what);
+  };
+  const std::vector<uint8_t> key(32, 0x11), other_key(32, 0x22);
+  const Tagger good(key.data(), key.size()), forger(other_key.data(), other_key.size());
+  SessionRules rules(9, key, 100);
+  uint8_t out[kMaxServerBytes], in[64];
+  auto send = [&](uint64_t t) {
+    Pose p;
+    p.t_client_us = t;
+    size_t n = rules.encode_next(p, 0, out, sizeof out);
+    Decoded d = decode(out, n);
+    if (!d.ok || !good.verify_tag(out, n)) fail("stream_rules", "encode_next");
+    return d.pose;
+  };
+  auto notice = [&](const Tagger* tagger, uint32_t session, uint32_t seq, uint64_t t,
+                    uint16_t error, uint32_t stream, uint32_t version = kVersion) {
+    Notice no;
+    no.version = version;
+    no.session = session;
+    no.seq = seq;
+    no.t_client_us = t;
+    no.error = error;
+    no.stream = stream;
+    size_t n = encode_notice(no, tagger, in, sizeof in);
+    return rules.accept(in, n, 0);
+  };
+  auto unchanged = [&](const Event& e, uint32_t stream) {
+    return e.kind == Event::Kind::Notice && !e.stream_changed && rules.stream() == stream;
+  };
+
+  const Pose h1 = send(1000);
+  expect(h1.stream == kHelloStream && h1.seq == 100 && rules.stream() == 0, "first POSE a hello");
+  Event e = notice(&forger, 9, h1.seq, 1000, NEW_STREAM, 77);
+  expect(unchanged(e, 0) && !e.verified, "NEW_STREAM tagged with another key");
+  expect(unchanged(notice(nullptr, 9, h1.seq, 1000, NEW_STREAM, 77), 0),
+         "untagged NEW_STREAM on a keyed session");
+  expect(unchanged(notice(&good, 9, h1.seq, 999, NEW_STREAM, 77), 0),
+         "NEW_STREAM echoing another t_client_us");
+  expect(unchanged(notice(&good, 9, h1.seq + 5, 1000, NEW_STREAM, 77), 0),
+         "NEW_STREAM for a seq never sent");
+  expect(unchanged(notice(&good, 9, h1.seq, 1000, NEW_STREAM, 0), 0), "NEW_STREAM of stream 0");
+  e = notice(&good, 8, h1.seq, 1000, NEW_STREAM, 77);
+  expect(e.kind == Event::Kind::Dropped && e.drop == Drop::Foreign && rules.stream() == 0,
+         "another session's NEW_STREAM");
+  e = notice(&good, 9, h1.seq, 1000, NEW_STREAM, 77);
+  expect(e.kind == Event::Kind::Notice && e.verified && e.stream_changed &&
+             e.notice.stream == 77 && rules.stream() == 77,
+         "NEW_STREAM answering our hello");
+  const Pose p2 = send(2000);
+  expect(p2.stream == 77 && p2.seq == h1.seq + 1, "POSEs carry the stream, seq counts on");
+  expect(unchanged(notice(&good, 9, h1.seq, 1000, NEW_STREAM, 78), 77),
+         "a second offer while streaming");
+  expect(unchanged(notice(&good, 9, p2.seq, 2000, WRONG_STREAM, 76), 77),
+         "WRONG_STREAM for another stream");
+  expect(unchanged(notice(&forger, 9, p2.seq, 2000, WRONG_STREAM, 77), 77),
+         "forged WRONG_STREAM");
+  expect(unchanged(notice(&good, 9, p2.seq, 2000, BAD_TAG, 77), 77),
+         "another notice with a stream");
+  e = notice(&good, 9, p2.seq, 2000, WRONG_STREAM, 77);
+  expect(e.verified && e.stream_changed && rules.stream() == 0, "WRONG_STREAM for our stream");
+  const Pose h3 = send(3000);
+  expect(h3.stream == kHelloStream && h3.seq == p2.seq + 1, "hello again, seq counts on");
+  expect(unchanged(notice(&good, 9, h1.seq, 1000, NEW_STREAM, 79), 0),
+         "a late answer to a hello of the previous round");
+  e = notice(&good, 9, h3.seq, 3000, NEW_STREAM, 80);
+  expect(e.stream_changed && rules.stream() == 80, "NEW_STREAM answering this round's hello");
+  // A hello is never ticked: a REPLY echoing one answers nothing we asked.
+  Reply r;
+  r.session = 9;
+  r.seq = h3.seq;
+  r.t_client_us = 3000;
+  size_t n = encode_reply(r, &good, out, sizeof out);
+  e = rules.accept(out, n, 0);
+  expect(e.kind == Event::Kind::Dropped && e.drop == Drop::Unsolicited, "a REPLY to a hello");
+  const Pose p4 = send(4000);
+  r.seq = p4.seq;
+  r.t_client_us = 4000;
+  n = encode_reply(r, &good, out, sizeof out);
+  expect(rules.accept(out, n, 0).kind == Event::Kind::Reply, "a REPLY on the new stream");
+  // A v1 server's answer to our v2 POSE: shown, counted, no stream change.
+  e = notice(nullptr, 9, p4.seq, 4000, BAD_VERSION, 0, kVersion1);
+  expect(unchanged(e, 80) && e.notice.version == kVersion1 && e.notice.error == BAD_VERSION,
+         "a v1 BAD_VERSION notice");
+  const Counters& c = rules.counters();
+  expect(c.hellos == 2 && c.streams == 2 && c.streams_lost == 1 && c.by_error[BAD_VERSION] == 1,
+         "counters");
+  // restart(): hello again, and only this round's hellos count.
+  rules.restart();
+  const Pose h5 = send(5000);
+  expect(h5.stream == kHelloStream && rules.stream() == 0, "restart() says hello");
+  expect(unchanged(notice(&good, 9, h3.seq, 3000, NEW_STREAM, 81), 0),
+         "an answer to a hello before restart()");
+  expect(notice(&good, 9, h5.seq, 5000, NEW_STREAM, 82).stream_changed && rules.stream() == 82,
+         "NEW_STREAM after restart()");
+
+  // A session without a key: notices are untagged and count as authentic.
+  SessionRules open(3, {}, 1);
+  Pose hp;
+  hp.t_client_us = 10;
+  n = open.encode_next(hp, 0, out, sizeof out);
+  Notice no;
+  no.session = 3;
+  no.seq = hp.seq;
+  no.t_client_us = 10;
+  no.error = NEW_STREAM;
+  no.stream = 5;
+  n = encode_notice(no, nullptr, in, sizeof in);
+  e = open.accept(in, n, 0);
+  expect(e.verified && e.stream_changed && open.stream() == 5, "an unkeyed session's NEW_STREAM");
+  return checks;
 }
 
 // SPEC 5.1 (serial arithmetic at the wrap), 5.5 (the worked example's rtt and offset) and
@@ -479,7 +633,7 @@ int main(int argc, char** argv) {
         n = encode_reply(r, tagger.get(), out, sizeof out);
         fields_equal = d.ok && d.type == kTypeReply && same(d.reply, r);
       } else if (type == "notice") {
-        Notice no = notice_of(f);
+        Notice no = notice_of(f, d.header_ok ? d.version : kVersion);
         n = encode_notice(no, tagger.get(), out, sizeof out);
         fields_equal = d.ok && d.type == kTypeNotice && same(d.notice, no);
       } else {
@@ -520,6 +674,7 @@ int main(int argc, char** argv) {
   }
   check_crypto();
   check_noncanonical();
+  int stream_rule_checks = check_stream_rules();
   check_sequence_clock_frames();
   check_json_http(text.str());
   check_mesh_rules();
@@ -527,7 +682,7 @@ int main(int argc, char** argv) {
   std::cout << "{\"vectors\": " << all.size() << ", \"encoded\": " << encoded
             << ", \"decoded\": " << decoded << ", \"tag_checked\": " << tag_checked
             << ", \"byte_changes\": " << byte_changes << ", \"fuzzed\": " << fuzzed
-            << ", \"failures\": [";
+            << ", \"stream_rule_checks\": " << stream_rule_checks << ", \"failures\": [";
   for (size_t i = 0; i < failures.size(); ++i)
     std::cout << (i ? ", " : "") << json::quote(failures[i]);
   std::cout << "]}" << std::endl;

@@ -62,7 +62,8 @@ namespace Burrforce
         public long Dropped(DropReason reason) { return dropped[(int)reason]; }
 
         /// <summary>Sends one POSE (engine frame and units), stamped <paramref name="tClientUs"/>
-        /// (when it was sampled; default now). Returns its sequence number.</summary>
+        /// (when it was sampled; default now): a hello while Rules.Stream is 0. Returns its
+        /// sequence number.</summary>
         public uint Send(Vec3 position, Quat orientation, double rpm, bool spindleOn,
                          uint flags = 0, long tClientUs = -1, Vec3? velocity = null)
         {
@@ -121,27 +122,35 @@ namespace Burrforce
             }
         }
 
-        /// <summary>Sends a POSE and waits for its answer. Throws TimeoutException without one,
-        /// BurrServerException for a NOTICE about it or an error REPLY.</summary>
+        /// <summary>Sends a POSE and waits for its answer. Without a stream (the first call, or
+        /// after the server said WRONG_STREAM) the POSE goes out as a hello first and again once
+        /// the server opened a stream. Throws TimeoutException without an answer within
+        /// timeoutUs in all, BurrServerException for another NOTICE about it or an error REPLY.</summary>
         public Reply Exchange(Vec3 position, Quat orientation, double rpm, bool spindleOn,
                               long timeoutUs = 1000000, uint flags = 0)
         {
-            uint seq = Send(position, orientation, rpm, spindleOn, flags);
             long deadline = MonotonicClock.NowUs() + timeoutUs;
             while (true)
             {
-                long remaining = deadline - MonotonicClock.NowUs();
-                MessageKind kind = remaining > 0 ? Receive(remaining) : MessageKind.None;
-                if (kind == MessageKind.None)
-                    throw new TimeoutException("no answer to packet " + seq + " within " + timeoutUs / 1000 + " ms");
-                if (kind == MessageKind.Notice)
+                uint seq = Send(position, orientation, rpm, spindleOn, flags);
+                while (true)
                 {
-                    if (LastNotice.Seq == seq) throw new BurrServerException(LastNotice.Error, seq);
-                    continue;
+                    long remaining = deadline - MonotonicClock.NowUs();
+                    MessageKind kind = remaining > 0 ? Receive(remaining) : MessageKind.None;
+                    if (kind == MessageKind.None)
+                        throw new TimeoutException("no answer to packet " + seq + " within " + timeoutUs / 1000 + " ms");
+                    if (kind == MessageKind.Notice)
+                    {
+                        if (LastNotice.Seq != seq) continue;
+                        // Believed handshake notices have already moved Rules to a stream or
+                        // back to hello: the same pose goes out again under it.
+                        if (LastNotice.Error == Protocol.ErrorNewStream || LastNotice.Error == Protocol.ErrorWrongStream) break;
+                        throw new BurrServerException(LastNotice.Error, seq);
+                    }
+                    if (LastReply.Seq != seq) continue;
+                    if (LastReply.Error != Protocol.ErrorOk) throw new BurrServerException(LastReply.Error, seq);
+                    return LastReply;
                 }
-                if (LastReply.Seq != seq) continue;
-                if (LastReply.Error != Protocol.ErrorOk) throw new BurrServerException(LastReply.Error, seq);
-                return LastReply;
             }
         }
 

@@ -27,6 +27,7 @@ namespace Burrforce
             w.WriteBool(pose.SpindleOn);
             if (pose.HasVelocity) w.WriteVec3(pose.Velocity); else w.WriteNil();
             w.WriteUInt(pose.Flags);
+            w.WriteUInt(pose.Stream);
             return FinishTag(ref w, tagger, buffer);
         }
 
@@ -70,6 +71,7 @@ namespace Burrforce
             w.WriteUInt(n.Seq);
             w.WriteUInt(n.TClientUs);
             w.WriteUInt((ulong)n.Error);
+            w.WriteUInt(n.Stream);
             return FinishTag(ref w, tagger, buffer);
         }
 
@@ -86,17 +88,16 @@ namespace Burrforce
         }
 
         // Elements 0-4, the same in every message type (SPEC.md §2.1).
-        private static int ReadHeader(ref MsgPackReader r, out int type, out uint session,
-                                      out uint seq, out long tClientUs)
+        private static int ReadHeader(ref MsgPackReader r, out ulong version, out int type,
+                                      out uint session, out uint seq, out long tClientUs)
         {
             int count = r.ReadArrayHeader();
             if (count < 5) throw new ProtocolException("fewer than 5 elements");
-            ulong version = r.ReadUInt(ulong.MaxValue);
+            version = r.ReadUInt(ulong.MaxValue);
             ulong t = r.ReadUInt(ulong.MaxValue);
             session = r.ReadUInt32();
             seq = r.ReadUInt32();
             tClientUs = r.ReadTimestamp();
-            if (version != Protocol.Version) throw new ProtocolException("protocol version " + version);
             type = t > 255 ? 0 : (int)t;
             return count;
         }
@@ -105,10 +106,11 @@ namespace Burrforce
         public static void DecodePose(byte[] data, int length, Pose into)
         {
             var r = new MsgPackReader(data, 0, length);
-            int type; uint session, seq; long t;
-            int count = ReadHeader(ref r, out type, out session, out seq, out t);
+            ulong version; int type; uint session, seq; long t;
+            int count = ReadHeader(ref r, out version, out type, out session, out seq, out t);
+            if (version != Protocol.Version) throw new ProtocolException("protocol version " + version);
             if (type != Protocol.TypePose) throw new ProtocolException("not a POSE");
-            if (count != Protocol.PoseElements) throw new ProtocolException("a POSE has 12 elements");
+            if (count != Protocol.PoseElements) throw new ProtocolException("a POSE has 13 elements");
             into.Session = session; into.Seq = seq; into.TClientUs = t;
             into.Position = r.ReadVec3();
             into.Orientation = r.ReadQuat();
@@ -117,19 +119,36 @@ namespace Burrforce
             into.HasVelocity = !r.TryReadNil();
             into.Velocity = into.HasVelocity ? r.ReadVec3() : Vec3.Zero;
             into.Flags = r.ReadUInt32();
+            into.Stream = r.ReadUInt32();
             into.Tagged = r.ReadTag();
             r.ExpectEnd();
         }
 
         /// <summary>Decodes a server datagram into <paramref name="reply"/> or
         /// <paramref name="notice"/> and says which; throws ProtocolException if it is neither
-        /// a well-formed REPLY nor NOTICE of version 1 (or is longer than 1024 bytes).</summary>
+        /// a well-formed REPLY nor NOTICE of version 2 nor v1's BAD_VERSION notice (or is longer
+        /// than 1024 bytes).</summary>
         public static MessageKind DecodeServerMessage(byte[] data, int length, Reply reply, Notice notice)
         {
             if (length > Protocol.MaxServerDatagramBytes) throw new ProtocolException("datagram longer than 1024 bytes");
             var r = new MsgPackReader(data, 0, length);
-            int type; uint session, seq; long t;
-            int count = ReadHeader(ref r, out type, out session, out seq, out t);
+            ulong version; int type; uint session, seq; long t;
+            int count = ReadHeader(ref r, out version, out type, out session, out seq, out t);
+            if (version == Protocol.VersionV1 && type == Protocol.TypeNotice && count == Protocol.NoticeV1Elements)
+            {
+                // A peer of the other version says so in v1's shape; nothing else of v1 is
+                // understood, so only that answer is taken (the caller can then say "update").
+                int error = (int)r.ReadUInt(0xffff);
+                if (error != Protocol.ErrorBadVersion) throw new ProtocolException("a version 1 notice other than BAD_VERSION");
+                notice.Version = Protocol.VersionV1;
+                notice.Session = session; notice.Seq = seq; notice.TClientUs = t;
+                notice.Error = error;
+                notice.Stream = 0;
+                notice.Tagged = r.ReadTag();
+                r.ExpectEnd();
+                return MessageKind.Notice;
+            }
+            if (version != Protocol.Version) throw new ProtocolException("protocol version " + version);
             if (type == Protocol.TypeReply)
             {
                 if (count != Protocol.ReplyElements) throw new ProtocolException("a REPLY has 24 elements");
@@ -158,9 +177,11 @@ namespace Burrforce
             }
             if (type == Protocol.TypeNotice)
             {
-                if (count != Protocol.NoticeElements) throw new ProtocolException("a NOTICE has 7 elements");
+                if (count != Protocol.NoticeElements) throw new ProtocolException("a NOTICE has 8 elements");
+                notice.Version = Protocol.Version;
                 notice.Session = session; notice.Seq = seq; notice.TClientUs = t;
                 notice.Error = (int)r.ReadUInt(0xffff);
+                notice.Stream = r.ReadUInt32();
                 notice.Tagged = r.ReadTag();
                 r.ExpectEnd();
                 return MessageKind.Notice;

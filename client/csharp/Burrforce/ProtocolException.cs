@@ -5,7 +5,7 @@ using System;
 
 namespace Burrforce
 {
-    /// <summary>A datagram that is not a valid message of protocol version 1 (SPEC.md §2).</summary>
+    /// <summary>A datagram that is not a valid message of protocol version 2 (SPEC.md §2).</summary>
     public sealed class ProtocolException : Exception
     {
         public ProtocolException(string message) : base(message) { }

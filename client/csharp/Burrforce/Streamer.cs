@@ -46,7 +46,8 @@ namespace Burrforce
 
         /// <summary>Called on the streamer thread for each believed REPLY.</summary>
         public event ReplyHandler ReplyReceived;
-        /// <summary>Called on the streamer thread for each NOTICE about this session.</summary>
+        /// <summary>Called on the streamer thread for each NOTICE about this session, the
+        /// handshake's NEW_STREAM and WRONG_STREAM only when they changed the stream.</summary>
         public event NoticeHandler NoticeReceived;
 
         public Streamer(string host, int port, uint session, string keyHex, StreamerOptions options = null)
@@ -99,8 +100,10 @@ namespace Burrforce
             }
         }
 
-        /// <summary>Starts a new stream at the next tick (after a REST restart-stream, or a
-        /// teleport of the tool): FLAG_NEW_STREAM until the next REPLY.</summary>
+        /// <summary>Gives up the stream at the next tick: hellos until the server opens a new
+        /// one, whose first tick starts sequence and velocity afresh. Not needed after a REST
+        /// restart-stream or a server restart (the server's WRONG_STREAM leads to a hello by
+        /// itself); for a teleport of the tool, FlagResetVelocity on one pose is enough.</summary>
         public void RestartStream()
         {
             lock (gate) restartRequested = true;
@@ -248,12 +251,14 @@ namespace Burrforce
             pose.SpindleOn = tickPose.SpindleOn;
             pose.HasVelocity = tickPose.HasVelocity;
             pose.Velocity = tickPose.Velocity;
-            pose.Flags = tickPose.Flags & ~Protocol.FlagNewStream;
+            pose.Flags = tickPose.Flags;
             int n = rules.Encode(pose, sendBuffer, tick);
             link.Send(sendBuffer, n);
             lock (gate)
             {
                 counters.Sent++;
+                if (pose.Stream == Protocol.HelloStream) counters.Hellos++;
+                counters.Stream = pose.Stream;
                 counters.Ticks++;
                 if (now - due > periodUs / 2) counters.LateTicks++;
             }
@@ -276,7 +281,11 @@ namespace Burrforce
                 }
                 if (kind == MessageKind.Notice)
                 {
-                    lock (gate) counters.Notices[StreamerCounters.Slot(notice.Error)]++;
+                    lock (gate)
+                    {
+                        counters.Notices[StreamerCounters.Slot(notice.Error)]++;
+                        counters.Stream = rules.Stream;
+                    }
                     var nh = NoticeReceived;
                     if (nh != null) nh(notice);
                     continue;

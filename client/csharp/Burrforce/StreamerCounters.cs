@@ -12,6 +12,11 @@ namespace Burrforce
         /// <summary>Ticks of the schedule that passed: sent + skipped.</summary>
         public long Ticks;
         public long Sent;
+        /// <summary>POSEs sent as hellos (stream 0: asking for a stream, never answered by a REPLY).</summary>
+        public long Hellos;
+        /// <summary>The stream in use at the snapshot; 0 while saying hello. Notices[NEW_STREAM]
+        /// counts the streams taken, Notices[WRONG_STREAM] those the server closed.</summary>
+        public uint Stream;
         /// <summary>REPLYs believed (any error value).</summary>
         public long Replies;
         /// <summary>REPLYs with error ≠ 0, by error code (index = code, last slot = any ≥ 15).</summary>
@@ -40,7 +45,7 @@ namespace Burrforce
 
         internal void CopyTo(StreamerCounters other)
         {
-            other.Ticks = Ticks; other.Sent = Sent; other.Replies = Replies;
+            other.Ticks = Ticks; other.Sent = Sent; other.Hellos = Hellos; other.Stream = Stream; other.Replies = Replies;
             other.LateTicks = LateTicks; other.SkippedTicks = SkippedTicks; other.Unreachable = Unreachable;
             Array.Copy(ErrorReplies, other.ErrorReplies, ErrorReplies.Length);
             Array.Copy(Notices, other.Notices, Notices.Length);
@@ -52,7 +57,8 @@ namespace Burrforce
         public override string ToString()
         {
             var sb = new StringBuilder();
-            sb.Append("ticks ").Append(Ticks).Append(", sent ").Append(Sent).Append(", replies ").Append(Replies)
+            sb.Append("ticks ").Append(Ticks).Append(", sent ").Append(Sent).Append(", hellos ").Append(Hellos)
+              .Append(", stream ").Append(Stream).Append(", replies ").Append(Replies)
               .Append(", late ").Append(LateTicks).Append(", skipped ").Append(SkippedTicks);
             for (int i = 0; i < Notices.Length; i++)
                 if (Notices[i] > 0) sb.Append(", notice ").Append(Protocol.ErrorName(i)).Append(' ').Append(Notices[i]);

@@ -33,7 +33,8 @@ namespace Burrforce
     {
         /// <summary>POSEs per second (1000 typical; the absolute schedule never drifts).</summary>
         public double RateHz = 1000.0;
-        /// <summary>First sequence number of the stream.</summary>
+        /// <summary>First sequence number (any works: the server accepts whatever seq opens a
+        /// stream, and seqs go on counting across streams).</summary>
         public uint FirstSeq = 1;
         /// <summary>No good REPLY for this long: render zero force and no vibration (SPEC.md §7.6).</summary>
         public long StaleAfterUs = 50000;

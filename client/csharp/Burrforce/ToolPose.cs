@@ -16,7 +16,7 @@ namespace Burrforce
         /// <summary>True to send Velocity (L/s, engine axes); false lets the server estimate it.</summary>
         public bool HasVelocity;
         public Vec3 Velocity;
-        /// <summary>POSE flags such as Protocol.FlagNoCarve (FLAG_NEW_STREAM is the SDK's job).</summary>
+        /// <summary>POSE flags such as Protocol.FlagNoCarve or FlagResetVelocity (the stream handshake is the SDK's job).</summary>
         public uint Flags;
 
         public ToolPose(Vec3 position, Quat rotation, double rpm, bool spindleOn)

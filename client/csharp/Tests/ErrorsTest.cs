@@ -81,7 +81,8 @@ namespace Burrforce.Tests
             using (var c = new BurrClient(s.UdpHost, s.UdpPort, s.Id, s.KeyHex, 100))
             {
                 Reply first = c.Exchange(Above, Quat.Identity, 60000.0, true, WaitUs);
-                checks.That(first.Error == 0 && first.Seq == 100, "a good POSE gets a good REPLY");
+                checks.That(first.Error == 0 && first.Seq == 101 && c.Rules.Stream != 0,
+                            "a hello (seq 100) opens a stream; its first POSE gets a good REPLY");
 
                 // BAD_VALUE: a NaN position. The seq is consumed; the REPLY carries no force.
                 uint badSeq = c.Send(new Vec3(double.NaN, 0.0, 10.0), Quat.Identity, 60000.0, true);
@@ -111,15 +112,15 @@ namespace Burrforce.Tests
                     if (c.Receive(deadline - MonotonicClock.NowUs()) != MessageKind.None) answers++;
                 result["duplicate_answers"] = answers;
 
-                // MALFORMED: a valid header but 11 elements (no velocity element).
+                // MALFORMED: a valid header but 12 elements (v1's POSE: no stream element).
                 var buf = new byte[256];
                 var w = new MsgPackWriter(buf, 0);
                 uint seq = c.Rules.NextSeq + 1000;
                 long t = MonotonicClock.NowUs();
-                w.WriteArrayHeader(11);
-                w.WriteUInt(1UL); w.WriteUInt(1UL); w.WriteUInt(s.Id); w.WriteUInt(seq); w.WriteUInt(t);
+                w.WriteArrayHeader(12);
+                w.WriteUInt((ulong)Protocol.Version); w.WriteUInt(1UL); w.WriteUInt(s.Id); w.WriteUInt(seq); w.WriteUInt(t);
                 w.WriteVec3(Above); w.WriteQuat(Quat.Identity); w.WriteFloat64(0.0); w.WriteBool(false);
-                w.WriteUInt(0UL);
+                w.WriteNil(); w.WriteUInt(0UL);
                 w.WriteTagPlaceholder();
                 Tagger.FromHex(s.KeyHex).Sign(buf, w.Position);
                 c.SendRaw(buf, w.Position);
@@ -130,6 +131,26 @@ namespace Burrforce.Tests
                     result["malformed_notice"] = (long)c.LastNotice.Error;
                     checks.That(c.LastNotice.Seq == seq && c.LastNotice.TClientUs == t, "malformed: the header is echoed");
                     checks.That(!c.LastNotice.Tagged, "malformed: the notice is untagged");
+                }
+
+                // BAD_VERSION: a v1 POSE (12 elements, version 1) gets v1's NOTICE shape, which
+                // this client understands so that it can say "update".
+                w = new MsgPackWriter(buf, 0);
+                seq++;
+                w.WriteArrayHeader(12);
+                w.WriteUInt((ulong)Protocol.VersionV1); w.WriteUInt(1UL); w.WriteUInt(s.Id); w.WriteUInt(seq); w.WriteUInt(t);
+                w.WriteVec3(Above); w.WriteQuat(Quat.Identity); w.WriteFloat64(0.0); w.WriteBool(false);
+                w.WriteNil(); w.WriteUInt(0UL);
+                w.WriteTagPlaceholder();
+                Tagger.FromHex(s.KeyHex).Sign(buf, w.Position);
+                c.SendRaw(buf, w.Position);
+                kind = c.Receive(WaitUs);
+                checks.That(kind == MessageKind.Notice, "bad version: answered with a NOTICE, got " + kind);
+                if (kind == MessageKind.Notice)
+                {
+                    result["bad_version_notice"] = (long)c.LastNotice.Error;
+                    checks.That(c.LastNotice.Version == Protocol.VersionV1 && c.LastNotice.Seq == seq && !c.LastNotice.Tagged,
+                                "bad version: v1's shape, the header echoed, untagged");
                 }
                 checks.That(c.Dropped(DropReason.BadTag) == 0 && c.Dropped(DropReason.Malformed) == 0,
                             "nothing the server sent was dropped as forged or malformed");

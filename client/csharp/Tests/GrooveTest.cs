@@ -142,6 +142,7 @@ namespace Burrforce.Tests
                 { "rtt_p50_us", Percentile(rtts, 50.0) }, { "rtt_p99_us", Percentile(rtts, 99.0) },
                 { "late_ticks", counters.LateTicks }, { "skipped_ticks", counters.SkippedTicks },
                 { "error_replies", counters.ErrorReplyCount }, { "notices", counters.NoticeCount },
+                { "new_stream_notices", counters.Notices[Protocol.ErrorNewStream] }, { "hellos", counters.Hellos },
                 { "counters", counters.ToString() },
                 { "last_bone_version", (long)lastBoneVersion },
                 { "allocated_bytes_1000_ticks", allocatedTo - allocatedFrom },

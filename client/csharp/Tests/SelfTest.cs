@@ -84,18 +84,19 @@ namespace Burrforce.Tests
             var r = new Reply();
             var n = new Notice();
             // SPEC §9.2's REPLY is what our encoder writes.
-            byte[] spec = Hex.Decode("dc00180102012ace000f4240ce004c4c3ace004c4c6c000393cbbfe8000000000000cb0000000000000000cb3ff0" +
+            byte[] spec = Hex.Decode("dc00180202012ace000f4240ce004c4c3ace004c4c6c000393cbbfe8000000000000cb0000000000000000cb3ff0" +
                 "00000000000093cbbfe8000000000000cb0000000000000000cb3ff000000000000093cb0000000000000000cb00" +
                 "00000000000000cbbfd8000000000000cb4022c00000000000cb3fe0000000000000cb408f40000000000093cbbf" +
                 "e3333333333333cb0000000000000000cb3fe999999999999a93cb0000000000000000cb0000000000000000cb00" +
                 "0000000000000093cb0000000000000000cb0000000000000000cb0000000000000000cb0000000000000000cb00" +
                 "00000000000000cb3f880000000000001193cb4008000000000000cb0000000000000000cb0000000000000000c4" +
-                "10c25bfea38b373dad33c6048dfcf72f10");
+                "10836ea61cd35f9b958e7d3d6fa361f16f");
             c.That(Hex.Encode(CanonicalReply(42, Tagger.FromHex(Key))) == Hex.Encode(spec), "SPEC 9.2 REPLY bytes");
             // Non-canonical NOTICE: header integers in signed and wide forms, array 16 header.
-            byte[] notice = B("dc0007", "d001", "d10003", "d2", "00000007", "cf000000000000002a", "d3000000000000000b", "cd0005", "c0");
-            c.That(Decode(notice, r, n) == MessageKind.Notice && n.Session == 7 && n.Seq == 42 && n.TClientUs == 11 && n.Error == 5,
-                   "notice with signed/wide integer forms and an array 16 header");
+            byte[] notice = B("dc0008", "d002", "d10003", "d2", "00000007", "cf000000000000002a", "d3000000000000000b", "cd0005",
+                              "d20000004d", "c0");
+            c.That(Decode(notice, r, n) == MessageKind.Notice && n.Session == 7 && n.Seq == 42 && n.TClientUs == 11 && n.Error == 5
+                   && n.Stream == 77 && n.Version == 2, "notice with signed/wide integer forms and an array 16 header");
             // Floats as float 32 and as integers (positive and negative fixint, int 16).
             byte[] canon = CanonicalReply(42, null);
             string hex = Hex.Encode(canon);
@@ -130,8 +131,10 @@ namespace Burrforce.Tests
         {
             var r = new Reply();
             var n = new Notice();
-            string ok = "9701030107" + "00" + "05" + "c0";
+            string ok = "9802030107" + "00" + "05" + "00" + "c0";
             c.That(Decode(Hex.Decode(ok), r, n) == MessageKind.Notice, "(baseline notice)");
+            string v1 = "9701030107" + "00" + "03" + "c0";
+            c.That(Decode(Hex.Decode(v1), r, n) == MessageKind.Notice && n.Version == 1 && n.Error == 3 && n.Stream == 0, "(v1 BAD_VERSION notice)");
             var bad = new Dictionary<string, string>
             {
                 { "trailing byte", ok + "00" },
@@ -139,22 +142,28 @@ namespace Burrforce.Tests
                 { "empty", "" },
                 { "not an array", "c0" },
                 { "a map", "81" + "01" + "01" },
-                { "4 elements", "9401030107" },
-                { "6 elements", "96010301070005" },
-                { "8 elements", "9801030107000500c0" },
-                { "version 2", "9702030107" + "0005c0" },
-                { "type 1 from a server", "9701010107" + "0005c0" },
-                { "negative seq", "97010301ff" + "0005c0" },
-                { "seq above 2^32", "970103" + "01" + "cf0000000100000000" + "00" + "05c0" },
-                { "t_client_us 2^63", "97010301" + "07" + "cf8000000000000000" + "05c0" },
-                { "error 65536", "9701030107" + "00" + "ce00010000" + "c0" },
-                { "error as float", "9701030107" + "00" + "cb4014000000000000" + "c0" },
-                { "tag of 15 bytes", "9701030107" + "00" + "05" + "c40f" + new string('0', 30) },
-                { "tag of 65 bytes", "9701030107" + "00" + "05" + "c441" + new string('0', 130) },
-                { "tag as str", "9701030107" + "00" + "05" + "a3616263" },
-                { "tag as ext", "9701030107" + "00" + "05" + "d40100" },
-                { "array of 33", "dc0021" + "0103010700" + "05" + "c0" },
-                { "bin length beyond the data", "9701030107" + "00" + "05" + "c6ffffffff" },
+                { "4 elements", "9402030107" },
+                { "7 elements (no stream)", "9702030107" + "0005c0" },
+                { "9 elements", "9902030107" + "00050000c0" },
+                { "version 1, other error", "9701030107" + "0005c0" },
+                { "version 1, 8 elements", "9801030107" + "000300c0" },
+                { "version 1 REPLY", Hex.Encode(CanonicalReply(42, null)).Remove(6, 2).Insert(6, "01") },
+                { "version 3", "9803030107" + "000500c0" },
+                { "type 1 from a server", "9802010107" + "000500c0" },
+                { "negative seq", "98020301ff" + "000500c0" },
+                { "seq above 2^32", "980203" + "01" + "cf0000000100000000" + "00" + "0500c0" },
+                { "t_client_us 2^63", "98020301" + "07" + "cf8000000000000000" + "0500c0" },
+                { "error 65536", "9802030107" + "00" + "ce00010000" + "00c0" },
+                { "error as float", "9802030107" + "00" + "cb4014000000000000" + "00c0" },
+                { "stream above 2^32", "9802030107" + "00" + "05" + "cf0000000100000000" + "c0" },
+                { "negative stream", "9802030107" + "00" + "05" + "ff" + "c0" },
+                { "stream nil", "9802030107" + "00" + "05" + "c0" + "c0" },
+                { "tag of 15 bytes", "9802030107" + "00" + "05" + "00" + "c40f" + new string('0', 30) },
+                { "tag of 65 bytes", "9802030107" + "00" + "05" + "00" + "c441" + new string('0', 130) },
+                { "tag as str", "9802030107" + "00" + "05" + "00" + "a3616263" },
+                { "tag as ext", "9802030107" + "00" + "05" + "00" + "d40100" },
+                { "array of 33", "dc0021" + "0203010700" + "05" + "00" + "c0" },
+                { "bin length beyond the data", "9802030107" + "00" + "05" + "00" + "c6ffffffff" },
                 { "array 32 length huge", "ddffffffff" },
             };
             foreach (var kv in bad)
@@ -189,8 +198,8 @@ namespace Burrforce.Tests
             c.That(p.SpindleOn && p.Rpm == 1.0 && !p.HasVelocity && !p.Tagged, "pose round trip");
             c.That(len <= Protocol.MaxPoseBytes, "pose size");
             var big = new Pose { Session = uint.MaxValue, Seq = uint.MaxValue, TClientUs = long.MaxValue, HasVelocity = true,
-                                 Flags = uint.MaxValue, Orientation = Quat.Identity };
-            c.That(Codec.EncodePose(big, Tagger.FromHex(Key), buf) == Protocol.MaxPoseBytes, "the largest POSE is 148 bytes");
+                                 Flags = uint.MaxValue, Stream = uint.MaxValue, Orientation = Quat.Identity };
+            c.That(Codec.EncodePose(big, Tagger.FromHex(Key), buf) == Protocol.MaxPoseBytes, "the largest POSE is 153 bytes");
             var bigReply = new byte[1024];
             int rl = Codec.EncodeReply(new Reply { Session = uint.MaxValue, Seq = uint.MaxValue, TClientUs = long.MaxValue,
                 TRecvUs = ulong.MaxValue, TSendUs = ulong.MaxValue, Error = 65535, Status = uint.MaxValue, BoneVersion = ulong.MaxValue },
@@ -210,7 +219,8 @@ namespace Burrforce.Tests
             var n = new Notice();
             var p = new Pose();
             var seeds = new List<byte[]> { CanonicalReply(42, Tagger.FromHex(Key)), CanonicalReply(7, null),
-                                           Hex.Decode("970103012ace000f424006c410d8b8f7671bc85bff9dc221aaef3fbb73") };
+                                           NoticeBytes(1, 42, 1000000, Protocol.ErrorNewStream, 305419896, Tagger.FromHex(Key)),
+                                           Hex.Decode("970103012ace000f424003c0") };
             var pb = new byte[256];
             int pl = Codec.EncodePose(new Pose { Orientation = Quat.Identity, HasVelocity = true }, Tagger.FromHex(Key), pb);
             var pose = new byte[pl];
@@ -272,14 +282,55 @@ namespace Burrforce.Tests
                     }
                 }
             }
-            // SPEC 9.1: the MAC of the worked example's POSE.
-            var pose = new Pose { Session = 1, Seq = 42, TClientUs = 1000000, Position = new Vec3(12.5, -3.0, 0.75),
-                                  Orientation = Quat.Identity, Rpm = 60000.0, SpindleOn = true };
+            SpecExample(c);
+        }
+
+        // SPEC 9.1 and 9.3 through the session rules: the hello, the NEW_STREAM answering it,
+        // the POSE on that stream, byte for byte; then the other notices of 9.3.
+        private static void SpecExample(Checks c)
+        {
+            var rules = new SessionRules(1, Key, 41);
+            var pose = new Pose { TClientUs = 999000, Position = new Vec3(12.5, -3.0, 0.75), Orientation = Quat.Identity,
+                                  Rpm = 60000.0, SpindleOn = true };
             var buf = new byte[256];
-            int n = Codec.EncodePose(pose, Tagger.FromHex(Key), buf);
-            c.That(n == 105 && Hex.Encode(buf, n - 16, 16) == "255da1005cb22e3b8f6e90942ff413df", "SPEC 9.1 tag");
+            int n = rules.Encode(pose, buf);
+            c.That(Hex.Encode(buf, 0, n) == "9d02010129ce000f3e5893cb4029000000000000cbc008000000000000cb3fe800000000000094cb000000000000" +
+                   "0000cb0000000000000000cb0000000000000000cb3ff0000000000000cb40ed4c0000000000c3c00000c4101ae9" +
+                   "5451a4250938a378fffec016763d", "SPEC 9.1 hello");
+            var r = new Reply();
+            var no = new Notice();
+            DropReason why;
+            long tick;
+            byte[] offer = Hex.Decode("9802030129ce000f3e580bce12345678c4101c5597f491d12765d5436e7dd245f2eb");
+            c.That(rules.Accept(offer, offer.Length, r, no, out why, out tick) == MessageKind.Notice && rules.Stream == 0x12345678,
+                   "SPEC 9.3 NEW_STREAM opens stream 0x12345678: " + why);
+            pose.TClientUs = 1000000;
+            n = rules.Encode(pose, buf);
+            c.That(n == 110 && Hex.Encode(buf, 0, n) == "9d0201012ace000f424093cb4029000000000000cbc008000000000000cb3fe800000000000094cb000000000000" +
+                   "0000cb0000000000000000cb0000000000000000cb3ff0000000000000cb40ed4c0000000000c3c000ce12345678" +
+                   "c4108bfe6d5e5ee63ff610237b36ec9435f7", "SPEC 9.1 POSE");
+            var mac = new byte[32];
+            Tagger.FromHex(Key).Mac(buf, 0, n - 16, mac, 0);
+            c.That(Hex.Encode(mac) == "8bfe6d5e5ee63ff610237b36ec9435f75f58e3b6b9b3705ae0730e9c902287b8", "SPEC 9.1 MAC");
             int plain = Codec.EncodePose(pose, null, buf);
-            c.That(plain == 88 && buf[plain - 1] == 0xc0, "SPEC 9.1 untagged");
+            c.That(plain == 93 && Hex.Encode(buf, plain - 6, 6) == "ce12345678c0", "SPEC 9.1 untagged");
+            var notices = new Dictionary<string, int>
+            {
+                { "980203012bce000f46280cce12345678c41069f2c53e1c34f9fb00c26aacb828a5c5", Protocol.ErrorWrongStream },
+                { "980203012ace000f42400600c41013f418699a205e37d769c9ad651f824c", Protocol.ErrorBadTag },
+                { "980203072ace000f42400500c0", Protocol.ErrorUnknownSession },
+                { "970103012ace000f424003c0", Protocol.ErrorBadVersion },
+            };
+            foreach (var kv in notices)
+            {
+                byte[] d = Hex.Decode(kv.Key);
+                c.That(Decode(d, r, no) == MessageKind.Notice && no.Error == kv.Value
+                       && no.Stream == (kv.Value == Protocol.ErrorWrongStream ? 0x12345678u : 0u)
+                       && no.Version == (kv.Value == Protocol.ErrorBadVersion ? 1 : 2), "SPEC 9.3 " + Protocol.ErrorName(kv.Value));
+            }
+            byte[] wrong = Hex.Decode("980203012bce000f46280cce12345678c41069f2c53e1c34f9fb00c26aacb828a5c5");
+            c.That(rules.Accept(wrong, wrong.Length, r, no, out why, out tick) == MessageKind.Notice && rules.Stream == 0,
+                   "SPEC 9.3 WRONG_STREAM ends it");
         }
 
         private static void SequenceAndTiming(Checks c)
@@ -330,45 +381,101 @@ namespace Burrforce.Tests
             c.That(Near(placed.PointToServer(new Vec3(0.1, -0.2, 0.3)), Vec3.Zero, 1e-9), "placement origin maps to the server origin");
         }
 
+        private static byte[] NoticeBytes(uint session, uint seq, long tClientUs, int error, uint stream, Tagger tagger)
+        {
+            var buf = new byte[256];
+            int len = Codec.EncodeNotice(new Notice { Session = session, Seq = seq, TClientUs = tClientUs, Error = error, Stream = stream },
+                                         tagger, buf);
+            var d = new byte[len];
+            Buffer.BlockCopy(buf, 0, d, 0, len);
+            return d;
+        }
+
         private static void Rules(Checks c)
         {
             var tagger = Tagger.FromHex(Key);
+            var forger = new Tagger(new byte[] { 1, 2, 3 });
             var rules = new SessionRules(1, Key, 42);
             var pose = new Pose { Position = new Vec3(12.5, -3.0, 0.75), Orientation = Quat.Identity, Rpm = 60000.0, SpindleOn = true, TClientUs = 1000000 };
             var buf = new byte[256];
-            rules.Encode(pose, buf);
-            c.That(pose.Seq == 42 && (pose.Flags & Protocol.FlagNewStream) != 0, "first POSE: NEW_STREAM");
             var r = new Reply();
             var n = new Notice();
-            DropReason why;
-            long tick;
-            byte[] reply = CanonicalReply(42, tagger);
-            c.That(rules.Accept(reply, reply.Length, r, n, out why, out tick) == MessageKind.Reply, "the answer is believed");
-            c.That(rules.Accept(reply, reply.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.Stale, "a duplicate REPLY is stale");
-            pose.Flags = 0;
+            DropReason why = DropReason.None;
+            long tick = -1;
+            Func<byte[], MessageKind> accept = d => rules.Accept(d, d.Length, r, n, out why, out tick);
+            Func<byte[], DropReason, bool> dropped = (d, reason) => accept(d) == MessageKind.None && why == reason;
+
+            // Without a stream every POSE is a hello; only a tagged NEW_STREAM echoing one opens it.
+            rules.Encode(pose, buf, 0);
+            c.That(pose.Seq == 42 && pose.Stream == 0 && rules.Stream == 0, "first POSE: a hello");
+            byte[] toHello = CanonicalReply(42, tagger);
+            c.That(dropped(toHello, DropReason.Unsolicited), "a REPLY to a hello");
             pose.TClientUs = 1001000;
-            rules.Encode(pose, buf);
-            c.That(pose.Seq == 43 && pose.Flags == 0, "after a REPLY: no NEW_STREAM");
-            byte[] unsent = CanonicalReply(44, tagger);
-            c.That(rules.Accept(unsent, unsent.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.Unsolicited, "a REPLY to an unsent seq");
-            byte[] wrongStamp = CanonicalReply(43, tagger, x => x.TClientUs = 999);
-            c.That(rules.Accept(wrongStamp, wrongStamp.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.Unsolicited, "a REPLY with another stamp");
-            byte[] foreign = CanonicalReply(43, tagger, x => { x.Session = 2; x.TClientUs = 1001000; });
-            c.That(rules.Accept(foreign, foreign.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.Foreign, "another session's REPLY");
-            byte[] untagged = CanonicalReply(43, null, x => x.TClientUs = 1001000);
-            c.That(rules.Accept(untagged, untagged.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.BadTag, "an untagged REPLY");
-            byte[] forged = CanonicalReply(43, new Tagger(new byte[] { 1, 2, 3 }), x => x.TClientUs = 1001000);
-            c.That(rules.Accept(forged, forged.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.BadTag, "a forged REPLY");
-            byte[] good = CanonicalReply(43, tagger, x => x.TClientUs = 1001000);
-            c.That(rules.Accept(good, good.Length, r, n, out why, out tick) == MessageKind.Reply, "the right answer");
-            byte[] notice = Hex.Decode("970103012ace000f424006c410d8b8f7671bc85bff9dc221aaef3fbb73");
-            c.That(rules.Accept(notice, notice.Length, r, n, out why, out tick) == MessageKind.Notice && n.Error == 6, "a NOTICE passes unverified");
+            rules.Encode(pose, buf, 1);
+            c.That(pose.Seq == 43 && pose.Stream == 0, "hellos until a NEW_STREAM");
+            c.That(dropped(NoticeBytes(1, 43, 1001000, Protocol.ErrorNewStream, 500, forger), DropReason.BadTag), "a forged NEW_STREAM");
+            c.That(dropped(NoticeBytes(1, 43, 1001000, Protocol.ErrorNewStream, 500, null), DropReason.BadTag), "an untagged NEW_STREAM");
+            c.That(dropped(NoticeBytes(2, 43, 1001000, Protocol.ErrorNewStream, 500, tagger), DropReason.Foreign), "another session's NEW_STREAM");
+            c.That(dropped(NoticeBytes(1, 44, 1001000, Protocol.ErrorNewStream, 500, tagger), DropReason.Unsolicited), "a NEW_STREAM to an unsent seq");
+            c.That(dropped(NoticeBytes(1, 43, 999, Protocol.ErrorNewStream, 500, tagger), DropReason.Unsolicited), "a NEW_STREAM with another stamp");
+            c.That(dropped(NoticeBytes(1, 43, 1001000, Protocol.ErrorNewStream, 0, tagger), DropReason.Unsolicited), "a NEW_STREAM to stream 0");
+            c.That(dropped(NoticeBytes(1, 43, 1001000, Protocol.ErrorWrongStream, 500, tagger), DropReason.Stale), "a WRONG_STREAM without a stream");
+            c.That(rules.Stream == 0, "still saying hello");
+            c.That(accept(NoticeBytes(1, 43, 1001000, Protocol.ErrorNewStream, 500, tagger)) == MessageKind.Notice
+                   && n.Stream == 500 && rules.Stream == 500 && tick == 1, "a NEW_STREAM answering a hello opens the stream");
+            c.That(dropped(NoticeBytes(1, 42, 1000000, Protocol.ErrorNewStream, 500, tagger), DropReason.Stale), "the same offer for the first hello");
+            c.That(dropped(NoticeBytes(1, 42, 1000000, Protocol.ErrorNewStream, 501, tagger), DropReason.Stale), "another offer while the stream is open");
+            pose.TClientUs = 1002000;
+            rules.Encode(pose, buf, 2);
+            c.That(pose.Seq == 44 && pose.Stream == 500, "then POSEs carry the stream");
+
+            // REPLYs: answers to POSEs sent, newer than the newest used, tagged with the key.
+            byte[] reply = CanonicalReply(44, tagger, x => x.TClientUs = 1002000);
+            c.That(accept(reply) == MessageKind.Reply && tick == 2, "the answer is believed");
+            c.That(dropped(reply, DropReason.Stale), "a duplicate REPLY is stale");
+            pose.TClientUs = 1003000;
+            rules.Encode(pose, buf, 3);
+            c.That(dropped(CanonicalReply(46, tagger), DropReason.Unsolicited), "a REPLY to an unsent seq");
+            c.That(dropped(CanonicalReply(45, tagger, x => x.TClientUs = 999), DropReason.Unsolicited), "a REPLY with another stamp");
+            c.That(dropped(CanonicalReply(45, tagger, x => { x.Session = 2; x.TClientUs = 1003000; }), DropReason.Foreign), "another session's REPLY");
+            c.That(dropped(CanonicalReply(45, null, x => x.TClientUs = 1003000), DropReason.BadTag), "an untagged REPLY");
+            c.That(dropped(CanonicalReply(45, forger, x => x.TClientUs = 1003000), DropReason.BadTag), "a forged REPLY");
+            c.That(accept(CanonicalReply(45, tagger, x => x.TClientUs = 1003000)) == MessageKind.Reply, "the right answer");
+
+            // Other notices pass unverified and change nothing.
+            c.That(accept(NoticeBytes(1, 45, 1003000, Protocol.ErrorBadTag, 0, forger)) == MessageKind.Notice && n.Error == 6,
+                   "a NOTICE passes unverified");
+            byte[] v1 = Hex.Decode("970103012ace000f424003c0");
+            c.That(accept(v1) == MessageKind.Notice && n.Version == 1 && n.Error == Protocol.ErrorBadVersion && n.Seq == 42,
+                   "v1's BAD_VERSION notice is understood");
+            c.That(rules.Stream == 500, "other notices leave the stream");
             var huge = new byte[1025];
-            c.That(rules.Accept(huge, huge.Length, r, n, out why, out tick) == MessageKind.None && why == DropReason.TooBig, "a datagram over 1024 bytes");
+            c.That(dropped(huge, DropReason.TooBig), "a datagram over 1024 bytes");
+
+            // WRONG_STREAM about this stream, tagged: hellos again, seqs going on.
+            c.That(dropped(NoticeBytes(1, 45, 1003000, Protocol.ErrorWrongStream, 501, tagger), DropReason.Stale), "a WRONG_STREAM about another stream");
+            c.That(dropped(NoticeBytes(1, 45, 1003000, Protocol.ErrorWrongStream, 500, forger), DropReason.BadTag), "a forged WRONG_STREAM");
+            c.That(rules.Stream == 500, "the stream survives them");
+            c.That(accept(NoticeBytes(1, 45, 1003000, Protocol.ErrorWrongStream, 500, tagger)) == MessageKind.Notice && rules.Stream == 0,
+                   "a WRONG_STREAM about the stream closes it");
+            pose.TClientUs = 1004000;
+            rules.Encode(pose, buf, 4);
+            c.That(pose.Seq == 46 && pose.Stream == 0, "hello again, seqs going on");
+            c.That(dropped(NoticeBytes(1, 43, 1001000, Protocol.ErrorNewStream, 500, tagger), DropReason.Unsolicited),
+                   "a replayed NEW_STREAM for a hello of an earlier stream");
+            c.That(accept(NoticeBytes(1, 46, 1004000, Protocol.ErrorNewStream, 600, tagger)) == MessageKind.Notice && rules.Stream == 600,
+                   "the next stream");
             rules.Restart();
-            pose.Flags = 0;
-            rules.Encode(pose, buf);
-            c.That((pose.Flags & Protocol.FlagNewStream) != 0, "after Restart: NEW_STREAM again");
+            pose.TClientUs = 1005000;
+            rules.Encode(pose, buf, 5);
+            c.That(pose.Seq == 47 && pose.Stream == 0 && rules.Stream == 0, "after Restart: a hello");
+
+            // A session without a key: the handshake by session and echo alone.
+            var open = new SessionRules(3, (Tagger)null, 1);
+            int len = open.Encode(pose, buf, 0);
+            c.That(buf[len - 1] == 0xc0 && pose.Stream == 0, "keyless: an untagged hello");
+            byte[] offer = NoticeBytes(3, 1, 1005000, Protocol.ErrorNewStream, 7, null);
+            c.That(open.Accept(offer, offer.Length, r, n, out why, out tick) == MessageKind.Notice && open.Stream == 7, "keyless: stream opened");
         }
 
         private static void JsonChecks(Checks c)

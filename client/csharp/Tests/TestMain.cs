@@ -14,7 +14,7 @@ namespace Burrforce.Tests
         {
             if (args.Length == 0)
             {
-                Console.Error.WriteLine("usage: BurrforceTests.exe vectors|selftest|groove|errors|mesh [--name value ...]");
+                Console.Error.WriteLine("usage: BurrforceTests.exe vectors|selftest|groove|errors|mesh|publish|stall|lifecycle|handshake [--name value ...]");
                 return 2;
             }
             var opts = Options(args);
@@ -29,6 +29,7 @@ namespace Burrforce.Tests
                 case "publish": result = PublishTest.Run(opts); break;
                 case "stall": result = StallTest.Run(); break;
                 case "lifecycle": result = LifecycleTest.Run(opts); break;
+                case "handshake": result = HandshakeTest.Run(opts); break;
                 default:
                     Console.Error.WriteLine("unknown command " + args[0]);
                     return 2;

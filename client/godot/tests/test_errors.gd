@@ -2,8 +2,9 @@
 # Copyright (c) 2026 the burrforce authors
 #
 # SPEC 3.4's answers as the SDK sees them, against a live server: UNKNOWN_SESSION and
-# BAD_TAG notices, a BAD_VALUE error REPLY (its seq consumed, zero force rendered), silence
-# for a duplicate datagram, a MALFORMED notice for a wrong element count.
+# BAD_TAG notices (to hellos: both come before the stream is looked at), a BAD_VALUE error
+# REPLY (its seq consumed, zero force rendered), silence for a duplicate datagram, a MALFORMED
+# notice for a wrong element count, a v1-shaped BAD_VERSION notice for a v1 POSE.
 # Usage: godot --no-window -s tests/test_errors.gd -- --host=H --port=P --session=S --key=HEX
 
 extends SceneTree
@@ -37,6 +38,20 @@ func collect(udp, rules, wait_ms: int) -> Array:
 				out.append(e)
 		OS.delay_usec(500)
 	return out
+
+
+# Says hello until the server's NEW_STREAM is adopted (each hello waits up to 500 ms for it).
+func open_stream(udp, rules) -> bool:
+	for i in range(4):
+		send_pose(udp, rules)
+		var end = C.now_us() + 500000
+		while C.now_us() < end and rules.hello():
+			while udp.get_available_packet_count() > 0:
+				rules.accept(udp.get_packet(), C.now_us())
+			OS.delay_usec(500)
+		if not rules.hello():
+			return true
+	return false
 
 
 func socket():
@@ -100,6 +115,7 @@ func _init():
 	# A good POSE, then the very same bytes again: answered once.
 	var u3 = socket()
 	var r3 = Rules.new(session, key, 1000)
+	result["opened"] = open_stream(u3, r3)
 	var d = send_pose(u3, r3)
 	var first = collect(u3, r3, 300)
 	u3.put_packet(d)
@@ -120,14 +136,35 @@ func _init():
 		"next": summary(collect(u3, r3, 300))}
 	# The same bytes as the NaN POSE's seq again would be a duplicate: the seq was used.
 	var replay = Codec.encode_pose(session, nan_seq, C.now_us(), POS, Q, 60000.0, true, null, 0,
-		preload("../addons/burrforce/core/hmac.gd").new(key))
+		r3.stream, preload("../addons/burrforce/core/hmac.gd").new(key))
 	u3.put_packet(replay)
 	result["bad_value"]["reused_seq"] = summary(collect(u3, r3, 300))
 
-	# 11 elements instead of 12: a valid header, a wrong shape.
+	# 12 elements instead of 13 (v1's POSE length, without a stream): a valid header, a wrong
+	# shape.
 	var w = StreamPeerBuffer.new()
 	w.big_endian = true
-	w.put_u8(0x9b)
+	w.put_u8(0x9c)
+	w.put_u8(M.VERSION)
+	w.put_u8(1)
+	Codec.write_uint(w, session)
+	Codec.write_uint(w, r3.seq)
+	Codec.write_uint(w, C.now_us())
+	Codec.write_vec(w, POS)
+	Codec.write_vec(w, Q)
+	Codec.write_f64(w, 60000.0)
+	w.put_u8(0xc3)
+	w.put_u8(0xc0)
+	w.put_u8(0x00)
+	w.put_u8(0xc0)
+	u3.put_packet(w.data_array)
+	result["malformed"] = summary(collect(u3, r3, 500))
+
+	# A v1 POSE (an SDK not yet updated): BAD_VERSION, in v1's NOTICE shape so that it can
+	# read it.
+	w = StreamPeerBuffer.new()
+	w.big_endian = true
+	w.put_u8(0x9c)
 	w.put_u8(1)
 	w.put_u8(1)
 	Codec.write_uint(w, session)
@@ -138,12 +175,16 @@ func _init():
 	Codec.write_f64(w, 60000.0)
 	w.put_u8(0xc3)
 	w.put_u8(0xc0)
+	w.put_u8(0x00)
 	w.put_u8(0xc0)
 	u3.put_packet(w.data_array)
-	result["malformed"] = summary(collect(u3, r3, 500))
+	var v1 = []
+	for e in collect(u3, r3, 500):
+		v1.append({"kind": e["kind"], "error": e["error"], "version": e["version"]})
+	result["bad_version"] = v1
 
 	# The streamer renders nothing from error REPLYs: good poses, then NaN from tick 40 on.
-	OS.delay_msec(1200)  # the session idles out (new stream whatever the seq)
+	# It starts at seq 1 again right after r3's stream: its hello gets it a stream of its own.
 	var s = Streamer.new(host, port, session, a["key"], 1)
 	s.rate_hz = 500.0
 	s.max_ticks = 60
@@ -154,14 +195,10 @@ func _init():
 	var c = s.counters()
 	result["streamer"] = {"error": snap["error"], "fresh": snap["fresh"], "force": snap["force"],
 		"vibration_amplitude": snap["vibration_amplitude"], "replies": c["replies"],
-		"error_replies": c["error_replies"], "sent": c["sent"]}
+		"error_replies": c["error_replies"], "sent": c["sent"], "streams": c["streams"]}
 
-	OS.delay_msec(1200)
 	var s2 = Streamer.new(host, port, session, a["key"], 5000)
 	s2.max_ticks = 300
-	# Stamps far above the engine clock (as the Godot 4 node's wall-clock epoch makes them): a
-	# uint 64 on the wire, still answered, round trips still right.
-	s2.clock_offset_us = 1795000000000000
 	s2.set_pose_source(self, "stalling_source")
 	s2.open()
 	var th = Thread.new()
@@ -184,6 +221,6 @@ func _init():
 	result["stall"] = {"sent": c2["sent"], "skipped": c2["skipped_ticks"],
 		"late": c2["late_ticks"], "replies": c2["replies"], "first_after_stall": first_after,
 		"stalled_at": stalled_at,
-		"first_stamp_us": call_times[0][1], "rtt_us": s2.snapshot()["rtt_us"],
+		"hellos": c2["hellos"], "streams": c2["streams"], "rtt_us": s2.snapshot()["rtt_us"],
 		"close_sends_after": close_sends, "stamps_on_schedule": on_schedule}
 	T.finish(self, result)

@@ -29,6 +29,9 @@ func _init():
 		var fields = {}
 		for k in v["fields"].keys():
 			fields[k] = T.exact(v["fields"][k])
+		# The wire version (2; 1 for the v1-shaped BAD_VERSION notice), a JSON double here.
+		var version = int(v["version"])
+		fields["version"] = version
 		var enc
 		if v["type"] == "pose":
 			enc = Codec.encode_pose_fields(fields, mac)
@@ -50,6 +53,8 @@ func _init():
 					bad.append(k)
 			if {"pose": 1, "reply": 2, "notice": 3}[v["type"]] != d["type"]:
 				bad.append("type")
+			if d["version"] != version:
+				bad.append("version")
 			if (mac == null) != (typeof(d["tag"]) == TYPE_NIL):
 				bad.append("tag")
 			if bad.size() > 0:

@@ -78,7 +78,8 @@ namespace Burrforce.Unity
         public event Action<ForceState> ForceUpdated;
         public event Action<uint> StatusChanged;
         public event Action<ulong> BoneVersionChanged;
-        /// <summary>A NOTICE (diagnostic: wrong key, unknown session...), with its error code.</summary>
+        /// <summary>A NOTICE (diagnostic: wrong key, unknown session...), with its error code;
+        /// also NEW_STREAM and WRONG_STREAM when the streamer took or lost a stream.</summary>
         public event Action<int> NoticeReceived;
 
         private Streamer streamer;
@@ -154,7 +155,12 @@ namespace Burrforce.Unity
             int code;
             while (notices.TryDequeue(out code))
             {
-                Debug.LogWarning("burrforce: the server refused a POSE: " + Protocol.ErrorName(code));
+                // The stream handshake is routine (start, REST restart-stream, server restart):
+                // the streamer follows it by itself.
+                if (code == Protocol.ErrorBadVersion)
+                    Debug.LogWarning("burrforce: the server speaks another wire protocol version: update the package or the server");
+                else if (code != Protocol.ErrorNewStream && code != Protocol.ErrorWrongStream)
+                    Debug.LogWarning("burrforce: the server refused a POSE: " + Protocol.ErrorName(code));
                 var nh = NoticeReceived;
                 if (nh != null) nh(code);
             }
@@ -185,7 +191,9 @@ namespace Burrforce.Unity
             streamer.Publish(p);
         }
 
-        /// <summary>Starts a new stream (e.g. after teleporting the tool).</summary>
+        /// <summary>Gives up the stream and takes a new one from the server, whose first tick
+        /// starts velocity afresh. Never needed to follow the server: after a REST
+        /// restart-stream or a server restart the streamer takes a new stream by itself.</summary>
         public void RestartStream()
         {
             if (streamer != null) streamer.RestartStream();

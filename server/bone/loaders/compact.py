@@ -6,7 +6,10 @@ A NumPy ``.npz`` (a zip of ``.npy`` arrays, deflated) holding:
 - ``density``, ``labels``, ``swept``: uint8 (nx, ny, nz) — the grid's three bytes per voxel;
 - ``spacing_mm`` (3,), ``origin_mm`` (3,), ``direction`` (3, 3): float64 geometry;
 - ``materials``: UTF-8 JSON bytes, a list of {label, name, us_n_mm2, k, forbidden};
-- ``meta``: UTF-8 JSON bytes: name, format, kind, notes, bone_version.
+- ``meta``: UTF-8 JSON bytes: name, format, kind, notes, bone_version, and ``generation``
+  when the server saved it: the bone generation (``server/api/generation.py``) whose
+  ``bone_version`` the file holds, so a client holding this file as its copy can go on with
+  deltas of that generation.
 
 Any NumPy can read it (``np.load``); mostly-empty volumes compress to a few percent.
 """
@@ -32,9 +35,10 @@ FORMAT_KEY = "burrforce_bone"
 FORMAT_VERSION = 1
 
 
-def save_bone(bone: Bone, path: str | Path) -> Path:
+def save_bone(bone: Bone, path: str | Path, generation: int | None = None) -> Path:
     """Write ``bone`` to ``path`` (``.bone.npz`` is appended if missing). The file appears
-    whole or not at all: it is written beside the target and renamed."""
+    whole or not at all: it is written beside the target and renamed. ``generation``: the
+    server's bone generation, kept in ``meta`` (omitted when None)."""
     path = Path(path)
     if not path.name.lower().endswith(BONE_SUFFIX):
         path = path.with_name(path.name + BONE_SUFFIX)
@@ -43,6 +47,8 @@ def save_bone(bone: Bone, path: str | Path) -> Path:
                   "forbidden": m.forbidden} for label, m in bone.materials]
     meta = {"name": bone.name, "format": bone.format, "kind": bone.kind,
             "notes": bone.notes, "bone_version": grid.version}
+    if generation is not None:
+        meta["generation"] = int(generation)
     directory = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=".burrforce-", suffix=".tmp", dir=directory)
     try:

@@ -24,8 +24,9 @@ class Client {
   SessionRules& rules() { return rules_; }
   Counters& counters() { return rules_.counters(); }
 
-  /// Sends `p` (its session, seq and FLAG_NEW_STREAM are filled in; t_client_us = now if
-  /// 0). Returns the seq used. `last_datagram()` holds the bytes sent.
+  /// Sends `p` (its session, seq and stream are filled in; t_client_us = now if 0): a hello
+  /// while the client has no stream (see open_stream). Returns the seq used.
+  /// `last_datagram()` holds the bytes sent.
   uint32_t send(Pose p) {
     if (p.t_client_us == 0) p.t_client_us = static_cast<uint64_t>(now_us());
     uint32_t seq = rules_.next_seq();
@@ -59,6 +60,28 @@ class Client {
       if (left <= 0) return Event{};
       socket_.wait_readable(left);
     }
+  }
+
+  /// The stream the server gave; 0 until open_stream() (or a NEW_STREAM) succeeded.
+  uint32_t stream() const { return rules_.stream(); }
+
+  /// Says hello with `p` (not ticked) until a NEW_STREAM notice gives a stream, resending
+  /// every `retry_us` in case a datagram was lost. True once the client has a stream; false
+  /// after `timeout_us` (no server, wrong key: see the notices counted). The next POSE
+  /// streams; a client with a stream returns true at once.
+  bool open_stream(const Pose& p, int64_t timeout_us, int64_t retry_us = 100000) {
+    int64_t deadline = now_us() + timeout_us;
+    while (rules_.stream() == kHelloStream) {
+      int64_t left = deadline - now_us();
+      if (left <= 0) return false;
+      send(p);
+      int64_t until = now_us() + (retry_us < left ? retry_us : left);
+      while (rules_.stream() == kHelloStream) {
+        Event ev = receive(until - now_us());
+        if (ev.kind == Event::Kind::Dropped) break;  // nothing came: say hello again
+      }
+    }
+    return true;
   }
 
   /// Sends `p` and waits for the answer to that seq (REPLY or NOTICE), skipping others.

@@ -33,10 +33,10 @@ inline size_t finish_tag(msgpack::Writer& w, const Tagger* tagger) {
   return w.size();
 }
 
-inline void header(msgpack::Writer& w, uint32_t elements, uint32_t type, uint32_t session,
-                   uint32_t seq, uint64_t t_client_us) {
+inline void header(msgpack::Writer& w, uint32_t version, uint32_t elements, uint32_t type,
+                   uint32_t session, uint32_t seq, uint64_t t_client_us) {
   w.array(elements);
-  w.uint(kVersion);
+  w.uint(version);
   w.uint(type);
   w.uint(session);
   w.uint(seq);
@@ -45,10 +45,10 @@ inline void header(msgpack::Writer& w, uint32_t elements, uint32_t type, uint32_
 }  // namespace detail
 
 /// Encodes a POSE, tagged with `tagger` (nil tag without one). Returns the datagram's size,
-/// 0 if `capacity` is too small (149 bytes always suffice).
+/// 0 if `capacity` is too small (153 bytes always suffice).
 inline size_t encode_pose(const Pose& p, const Tagger* tagger, uint8_t* out, size_t capacity) {
   msgpack::Writer w(out, capacity);
-  detail::header(w, kPoseElements, kTypePose, p.session, p.seq, p.t_client_us);
+  detail::header(w, kVersion, kPoseElements, kTypePose, p.session, p.seq, p.t_client_us);
   w.vec(p.position, 3);
   w.vec(p.orientation, 4);
   w.f64(p.rpm);
@@ -58,6 +58,7 @@ inline size_t encode_pose(const Pose& p, const Tagger* tagger, uint8_t* out, siz
   else
     w.nil();
   w.uint(p.flags);
+  w.uint(p.stream);
   return detail::finish_tag(w, tagger);
 }
 
@@ -65,7 +66,7 @@ inline size_t encode_pose(const Pose& p, const Tagger* tagger, uint8_t* out, siz
 inline size_t encode_reply(const Reply& r, const Tagger* tagger, uint8_t* out,
                            size_t capacity) {
   msgpack::Writer w(out, capacity);
-  detail::header(w, kReplyElements, kTypeReply, r.session, r.seq, r.t_client_us);
+  detail::header(w, kVersion, kReplyElements, kTypeReply, r.session, r.seq, r.t_client_us);
   w.uint(r.t_recv_us);
   w.uint(r.t_send_us);
   w.uint(r.error);
@@ -87,11 +88,16 @@ inline size_t encode_reply(const Reply& r, const Tagger* tagger, uint8_t* out,
   return detail::finish_tag(w, tagger);
 }
 
+/// Encodes a NOTICE (a server's job, as encode_reply); `n.version == kVersion1` writes v1's
+/// shape, without the stream.
 inline size_t encode_notice(const Notice& n, const Tagger* tagger, uint8_t* out,
                             size_t capacity) {
   msgpack::Writer w(out, capacity);
-  detail::header(w, kNoticeElements, kTypeNotice, n.session, n.seq, n.t_client_us);
+  const bool v1 = n.version == kVersion1;
+  detail::header(w, v1 ? kVersion1 : kVersion, v1 ? kNoticeV1Elements : kNoticeElements,
+                 kTypeNotice, n.session, n.seq, n.t_client_us);
   w.uint(n.error);
+  if (!v1) w.uint(n.stream);
   return detail::finish_tag(w, tagger);
 }
 
@@ -100,7 +106,8 @@ struct Decoded {
   /// Elements 0-4 were readable (SPEC 2.2): the message can be attributed to a session and
   /// a packet even when the rest is malformed.
   bool header_ok = false;
-  /// The whole message is a well-formed v1 POSE, REPLY or NOTICE.
+  /// The whole message is a well-formed v2 POSE, REPLY or NOTICE, or a NOTICE in v1's shape
+  /// (notice.version 1: a v1 server saying BAD_VERSION to our v2 POSEs).
   bool ok = false;
   uint32_t version = 0;
   uint32_t type = 0;
@@ -143,7 +150,7 @@ inline bool read_u32(msgpack::Reader& r, uint32_t& v) {
 }
 }  // namespace detail
 
-/// Decodes any v1 message. Never throws, never reads outside `data[0:n]`.
+/// Decodes any v2 message, and v1's NOTICE. Never throws, never reads outside `data[0:n]`.
 inline Decoded decode(const uint8_t* data, size_t n) {
   Decoded d;
   msgpack::Reader r(data, n);
@@ -161,8 +168,21 @@ inline Decoded decode(const uint8_t* data, size_t n) {
   d.elements = count;
   d.version = neg0 || version > detail::kMaxU32 ? 0xFFFFFFFFu : static_cast<uint32_t>(version);
   d.type = neg1 || type > detail::kMaxU32 ? 0xFFFFFFFFu : static_cast<uint32_t>(type);
-  if (d.version != kVersion) return d;
   bool ok = false;
+  if (d.version == kVersion1) {
+    // Of v1 only the NOTICE: the one message a v1 server sends a v2 client.
+    if (d.type == kTypeNotice && count == kNoticeV1Elements) {
+      Notice& p = d.notice;
+      p.version = kVersion1;
+      p.session = session;
+      p.seq = seq;
+      p.t_client_us = t;
+      ok = detail::read_u16(r, p.error) && detail::read_tag(r, d.tagged) && r.at_end();
+    }
+    d.ok = ok;
+    return d;
+  }
+  if (d.version != kVersion) return d;
   if (d.type == kTypePose && count == kPoseElements) {
     Pose& p = d.pose;
     p.session = session;
@@ -174,7 +194,7 @@ inline Decoded decode(const uint8_t* data, size_t n) {
       p.has_velocity = !r.take_nil();
       if (p.has_velocity) ok = r.vec(p.velocity, 3);
     }
-    ok = ok && detail::read_u32(r, p.flags);
+    ok = ok && detail::read_u32(r, p.flags) && detail::read_u32(r, p.stream);
   } else if (d.type == kTypeReply && count == kReplyElements) {
     Reply& p = d.reply;
     p.session = session;
@@ -194,7 +214,7 @@ inline Decoded decode(const uint8_t* data, size_t n) {
     p.session = session;
     p.seq = seq;
     p.t_client_us = t;
-    ok = detail::read_u16(r, p.error);
+    ok = detail::read_u16(r, p.error) && detail::read_u32(r, p.stream);
   }
   ok = ok && detail::read_tag(r, d.tagged) && r.at_end();
   d.ok = ok;

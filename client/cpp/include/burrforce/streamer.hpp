@@ -16,6 +16,11 @@
 // After a stall (the process was descheduled) missed ticks are skipped and counted: only
 // the newest due tick is sent, never a burst.
 //
+// Streams (protocol v2) need nothing from the engine: until the server has given the
+// streamer a stream, each tick's POSE is a hello (not ticked, no REPLY); the NEW_STREAM
+// answer arrives within a round trip and the next tick streams. A closed stream (the server
+// restarted, a REST restart-stream) answers WRONG_STREAM, and the streamer says hello again.
+//
 // An exception thrown by a PoseSource or a callback ends the stream instead of the process:
 // it is kept in failure(), the streamer counts as finished and state() renders zero force.
 #pragma once
@@ -46,7 +51,7 @@ struct ToolPose {
   bool spindle_on = false;
   bool has_velocity = false;
   Vec3 velocity;         ///< L/s, only if has_velocity
-  uint32_t flags = 0;    ///< FLAG_NO_CARVE, FLAG_RESET_VELOCITY (NEW_STREAM is automatic)
+  uint32_t flags = 0;    ///< FLAG_NO_CARVE, FLAG_RESET_VELOCITY
   int64_t t_sampled_us = 0;  ///< publish(): 0 = now
 };
 
@@ -159,15 +164,14 @@ class Streamer {
     has_published_ = true;
   }
 
-  /// Starts a new stream on the next tick (FLAG_NEW_STREAM until a REPLY; sequence numbers
-  /// from `first_seq`): after the server restarted, or after a REST restart-stream.
-  /// A published pose is re-stamped with the time of the restart: the server accepts
-  /// FLAG_NEW_STREAM only with a t_client_us later than the last one it took (SPEC 5.2),
-  /// and an engine that publishes seldom would otherwise be ignored until its next frame.
-  void restart_stream(uint32_t first_seq = 1) {
-    restart_seq_ = first_seq;
-    restart_ = true;
-  }
+  /// Asks the server for a new stream from the next tick on (hellos until it answers; the
+  /// new stream's first tick reports STALE, a fresh velocity estimate). Not needed after a
+  /// server restart or a REST restart-stream: the closed stream's WRONG_STREAM answer makes
+  /// the streamer say hello by itself. Sequence numbers go on counting.
+  void restart_stream() { restart_ = true; }
+
+  /// The stream the server gave (any thread); 0 while the streamer says hello.
+  uint32_t stream() const { return rules_.stream(); }
 
   /// What to render now (any thread).
   HapticState state() const {
@@ -194,7 +198,7 @@ class Streamer {
 
   void run() {
     try {
-      stream();
+      loop();
     } catch (const std::exception& e) {
       fail(e.what());
     } catch (...) {
@@ -214,7 +218,7 @@ class Streamer {
     silence(state_);
   }
 
-  void stream() {
+  void loop() {
     const double period_us = 1e6 / cfg_.rate_hz;
     const int64_t start_us = now_us();
     uint64_t k = 0;
@@ -249,12 +253,7 @@ class Streamer {
 
   /// Sends tick `k`; false when the pose source ended the stream.
   bool send_tick(uint64_t k, int64_t due_us) {
-    if (restart_.exchange(false)) {
-      rules_.restart(restart_seq_);
-      std::lock_guard<std::mutex> lock(pose_mutex_);
-      int64_t now = now_us();
-      if (has_published_ && published_.t_sampled_us < now) published_.t_sampled_us = now;
-    }
+    if (restart_.exchange(false)) rules_.restart();
     ToolPose tp;
     int64_t stamp;
     if (source_) {
@@ -281,7 +280,7 @@ class Streamer {
     p.velocity[0] = tp.velocity.x;
     p.velocity[1] = tp.velocity.y;
     p.velocity[2] = tp.velocity.z;
-    p.flags = tp.flags & ~FLAG_NEW_STREAM;
+    p.flags = tp.flags;
     size_t n = rules_.encode_next(p, k, out_, sizeof out_, now_us());
     Counters& c = rules_.counters();
     c.sent.fetch_add(1, std::memory_order_relaxed);
@@ -365,7 +364,6 @@ class Streamer {
   ToolPose published_;
   bool has_published_ = false;
   std::atomic<bool> restart_{false};
-  std::atomic<uint32_t> restart_seq_{1};
   mutable std::mutex state_mutex_;
   HapticState state_;
   std::atomic<uint64_t> bone_version_{0};

@@ -45,10 +45,6 @@ const M = preload("core/messages.gd")
 @export_range(100.0, 4000.0) var rate_hz := 1000.0
 @export var rpm := 60000.0
 @export var spindle_on := true
-## Stamp poses with the engine clock plus the wall-clock time at start (monotonic within a
-## run, and later than the previous run's): a restarted game is then accepted at once,
-## instead of after the server's 1 s idle restart.
-@export var stamp_from_wall_epoch := true
 ## Send the tool's frame-to-frame velocity with each pose (see _publish). Turn off when the
 ## tool node is updated at the haptic rate itself (a device driver thread).
 @export var send_velocity := true
@@ -83,12 +79,9 @@ func _ready() -> void:
 		udp_port = int(r["json"]["udp"]["port"])
 		_created = true
 	elif rest_url != "":
+		# For set_parameters only: a restarted game needs no REST call to stream again (the
+		# streamer asks the server for a new stream whatever its seq and clock).
 		rest = Rest.new(rest_url, rest_token)
-		# Godot's clock and seq start over with the game: a restart within a second of the last
-		# run's stream would be dropped as stale, silently (SPEC 5.2). Have the server forget it.
-		var r = rest.restart_stream(session_id)
-		if not r["ok"]:
-			push_warning("burrforce: " + r["detail"])
 	start()
 
 
@@ -118,9 +111,6 @@ func start() -> void:
 		return
 	streamer = Streamer.new(host, udp_port, session_id, key_hex)
 	streamer.rate_hz = rate_hz
-	if stamp_from_wall_epoch:
-		streamer.clock_offset_us = (int(Time.get_unix_time_from_system() * 1000000.0)
-			- Time.get_ticks_usec())
 	if streamer.open() != OK:
 		push_error("burrforce: cannot open UDP to %s:%d" % [host, udp_port])
 		streamer = null
@@ -192,7 +182,8 @@ func get_force() -> Vector3:
 	return Vector3(f[0], f[1], f[2])
 
 
-## Counters: sent, replies, error_replies, notices by code, dropped by reason, late/skipped ticks.
+## Counters: sent, replies, error_replies, notices by code, dropped by reason, late/skipped
+## ticks, hellos (ticks sent while waiting for a stream), streams opened, the stream in use.
 func get_counters() -> Dictionary:
 	return {} if streamer == null else streamer.counters()
 

@@ -63,11 +63,12 @@ static func _finish(w, mac):
 
 
 # A POSE datagram. position Array[3] (L), orientation Array[4] (x, y, z, w), velocity null
-# or Array[3] (L/s); mac a Hmac or null (a session without a key).
+# or Array[3] (L/s); stream the server's stream number, 0 for a hello; mac a Hmac or null (a
+# session without a key).
 static func encode_pose(session: int, seq: int, t_client_us: int, position, orientation,
-		rpm: float, spindle_on: bool, velocity, flags: int, mac):
+		rpm: float, spindle_on: bool, velocity, flags: int, stream: int, mac):
 	var w = _writer()
-	w.put_u8(0x9c)
+	w.put_u8(0x90 | M.POSE_ELEMENTS)
 	w.put_u8(M.VERSION)
 	w.put_u8(M.TYPE_POSE)
 	write_uint(w, session)
@@ -82,6 +83,7 @@ static func encode_pose(session: int, seq: int, t_client_us: int, position, orie
 	else:
 		write_vec(w, velocity)
 	write_uint(w, flags)
+	write_uint(w, stream)
 	return _finish(w, mac)
 
 
@@ -89,7 +91,7 @@ static func encode_pose(session: int, seq: int, t_client_us: int, position, orie
 static func encode_pose_fields(f: Dictionary, mac):
 	return encode_pose(int(f["session"]), int(f["seq"]), int(f["t_client_us"]), f["position"],
 		f["orientation"], float(f["rpm"]), bool(f["spindle_on"]), f["velocity"], int(f["flags"]),
-		mac)
+		int(f["stream"]), mac)
 
 
 # A REPLY (what the server sends; here for tests, recorders and fakes of the server).
@@ -114,15 +116,20 @@ static func encode_reply_fields(f: Dictionary, mac):
 	return _finish(w, mac)
 
 
+# A NOTICE; f["version"] 1 writes v1's shape [1, 3, session, seq, t_client_us, error, tag]
+# (what a server answers a datagram of the other version with, BAD_VERSION).
 static func encode_notice_fields(f: Dictionary, mac):
+	var v1 = int(f.get("version", M.VERSION)) == M.VERSION_1
 	var w = _writer()
-	w.put_u8(0x97)
-	w.put_u8(M.VERSION)
+	w.put_u8(0x90 | (M.NOTICE_V1_ELEMENTS if v1 else M.NOTICE_ELEMENTS))
+	w.put_u8(M.VERSION_1 if v1 else M.VERSION)
 	w.put_u8(M.TYPE_NOTICE)
 	write_uint(w, int(f["session"]))
 	write_uint(w, int(f["seq"]))
 	write_uint(w, int(f["t_client_us"]))
 	write_uint(w, int(f["error"]))
+	if not v1:
+		write_uint(w, int(f.get("stream", 0)))
 	return _finish(w, mac)
 
 
@@ -154,6 +161,8 @@ static func decode(data, max_bytes: int = M.MAX_SERVER_BYTES) -> Dictionary:
 	out["addressable"] = true
 	out["version"] = version
 	out["type"] = type
+	if version == M.VERSION_1 and type == M.TYPE_NOTICE and v.size() == M.NOTICE_V1_ELEMENTS:
+		return _v1_notice(v, out, bad)
 	if version != M.VERSION:
 		out["reason"] = "version %d" % version
 		return out
@@ -172,6 +181,7 @@ static func decode(data, max_bytes: int = M.MAX_SERVER_BYTES) -> Dictionary:
 		out["spindle_on"] = _bool(v[8], bad)
 		out["velocity"] = null if typeof(v[9]) == TYPE_NIL else _vec(v[9], 3, bad)
 		out["flags"] = _uint(v[10], 0xffffffff, bad)
+		out["stream"] = _uint(v[11], 0xffffffff, bad)
 	elif type == M.TYPE_REPLY:
 		for i in range(M.REPLY_FIELDS.size()):
 			var kind = M.REPLY_KINDS[i]
@@ -190,7 +200,24 @@ static func decode(data, max_bytes: int = M.MAX_SERVER_BYTES) -> Dictionary:
 			out[M.REPLY_FIELDS[i]] = value
 	else:
 		out["error"] = _uint(v[5], 0xffff, bad)
+		out["stream"] = _uint(v[6], 0xffffffff, bad)
 	out["tag"] = _tag(v[n - 1], bad)
+	if bad.size() > 0:
+		out["reason"] = bad[0]
+		return out
+	out["ok"] = true
+	return out
+
+
+# v1's NOTICE, read only when it says BAD_VERSION: the answer of a server that does not speak
+# this version (a v1 server to our v2 POSEs), which the application should be told of. It
+# comes back as a NOTICE with "version" 1 and stream 0.
+static func _v1_notice(v: Array, out: Dictionary, bad: Array) -> Dictionary:
+	out["error"] = _uint(v[5], 0xffff, bad)
+	out["stream"] = 0
+	out["tag"] = _tag(v[6], bad)
+	if bad.size() == 0 and out["error"] != M.BAD_VERSION:
+		bad.append("a version 1 NOTICE other than BAD_VERSION")
 	if bad.size() > 0:
 		out["reason"] = bad[0]
 		return out

@@ -13,8 +13,8 @@ static func major() -> int:
 
 
 # Monotonic µs. Godot 4 has Time.get_ticks_usec and dropped OS.get_ticks_usec; Godot 3 has no
-# Time singleton. Both count from engine start (see README: a restarted engine's clock
-# starts over, which is why the streamer sets FLAG_NEW_STREAM).
+# Time singleton. Both count from engine start: a restarted engine's clock starts over, which
+# the server does not mind (a restarted client asks for a new stream, SPEC 5.2).
 static func now_us() -> int:
 	if Engine.has_singleton("Time"):
 		return int(Engine.get_singleton("Time").call("get_ticks_usec"))

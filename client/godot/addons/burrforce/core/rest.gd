@@ -73,6 +73,9 @@ func set_parameters(session_id: int, fields: Dictionary) -> Dictionary:
 	return request("PATCH", "/v1/sessions/%d/parameters" % session_id, fields)
 
 
+# Closes the session's stream: its client's next POSE gets WRONG_STREAM, and the streamer
+# says hello and streams on by itself (kept for compatibility: a new or restarted client
+# needs no such call in protocol version 2).
 func restart_stream(session_id: int) -> Dictionary:
 	return request("POST", "/v1/sessions/%d/restart-stream" % session_id)
 

@@ -15,6 +15,12 @@
 # ticks are skipped and counted, never sent in a burst: a burst would reach the server as
 # poses sampled at once. With catch_up (playing back a recorded trajectory) every tick is sent,
 # late ones as soon as possible, still stamped with their scheduled times.
+#
+# Streams (SPEC 5.2): the first ticks are hellos until the server's NEW_STREAM arrives (a round
+# trip: a tick or two on a LAN), and again after a WRONG_STREAM (the server restarted, or the
+# stream was restarted over REST). A hello's pose is not ticked and gets no REPLY, so the
+# output stays stale until the stream is open. Nothing else is needed to restart: a new
+# streamer, a restarted game or engine, may begin at any seq and any clock.
 
 const C = preload("compat.gd")
 const M = preload("messages.gd")
@@ -31,12 +37,6 @@ var max_ticks = -1  # stop after this many ticks (-1: until stop())
 var catch_up = false
 var linger_us = 50000  # after the last tick: how long to keep taking replies
 var stale_us = 50000  # no good REPLY for this long: render nothing (SPEC 7.6)
-# Added to the engine's clock (µs since engine start) in every stamp. Godot's clock starts
-# over with each run, so a restarted game's FLAG_NEW_STREAM POSEs look older than the last
-# run's and wait out the server's 1 s idle restart (SPEC 5.2); a constant offset such as the
-# wall-clock time at start keeps each run's stamps above the last one's while staying
-# monotonic within the run. Round trips are unaffected (both ends carry the offset).
-var clock_offset_us = 0
 var spin_us = 150  # sleep until this close to a due time, then spin (sleep overshoots)
 var poll_us = 100  # longest nap between two looks at the socket
 
@@ -80,7 +80,8 @@ func _init(host: String, port: int, session: int, key, first_seq: int = 1):
 	_mutex = Mutex.new()
 	_out = _empty_output()
 	_counters = {"ticks": 0, "sent": 0, "send_errors": 0, "replies": 0, "error_replies": 0,
-		"notices": {}, "dropped": {}, "late_ticks": 0, "skipped_ticks": 0, "no_pose_ticks": 0}
+		"notices": {}, "dropped": {}, "late_ticks": 0, "skipped_ticks": 0, "no_pose_ticks": 0,
+		"hellos": 0, "streams": 0, "stream": 0}
 
 
 # Opens the socket; 0 (OK) or the engine's error code.
@@ -120,7 +121,8 @@ func set_pose_source(obj, method: String) -> void:
 
 
 # obj.method(event: Dictionary), on the stream thread, for each believed REPLY
-# ("kind" "reply") and NOTICE ("kind" "notice").
+# ("kind" "reply") and NOTICE ("kind" "notice"; "changed" true on the NEW_STREAM that opened
+# the stream and the WRONG_STREAM that closed it).
 func set_listener(obj, method: String) -> void:
 	_lis_obj = obj
 	_lis_method = method
@@ -168,11 +170,14 @@ func run(_userdata = null) -> void:
 		if now - due > period_us:
 			if not catch_up:
 				var missed = int((now - due) / period_us)
+				if max_ticks >= 0:
+					# Ticks past the last one were never going to be sent: not skipped ones.
+					missed = min(missed, max_ticks - k)
 				k += missed
 				_count("skipped_ticks", missed)
 				continue
 			_count("late_ticks", 1)
-		_tick(k, due + clock_offset_us)
+		_tick(k, due)
 		k += 1
 		_receive()
 	var end = C.now_us() + linger_us
@@ -199,11 +204,14 @@ func _tick(k: int, t_us: int) -> void:
 	if typeof(p) != TYPE_DICTIONARY:
 		_count("no_pose_ticks", 1)
 		return
+	var hello = rules.hello()
 	var d = rules.pose(p["position"], p["orientation"], float(p["rpm"]), bool(p["spindle_on"]),
 		p.get("velocity", null), int(p.get("flags", 0)), t_us, k)
 	var err = _udp.put_packet(d)
 	_mutex.lock()
 	_counters["ticks"] += 1
+	if hello:
+		_counters["hellos"] += 1
 	if err == OK:
 		_counters["sent"] += 1
 	else:
@@ -218,7 +226,7 @@ func _receive() -> void:
 		var arrived = C.now_us()
 		if _udp.get_packet_error() != OK:
 			continue
-		var e = rules.accept(data, arrived + clock_offset_us)
+		var e = rules.accept(data, arrived)
 		var kind = e["kind"]
 		_mutex.lock()
 		if kind == "reply":
@@ -233,6 +241,10 @@ func _receive() -> void:
 		elif kind == "notice":
 			var code = e["error"]
 			_counters["notices"][code] = _counters["notices"].get(code, 0) + 1
+			if e.get("changed", false):
+				_counters["stream"] = rules.stream
+				if rules.stream != M.HELLO_STREAM:
+					_counters["streams"] += 1
 		else:
 			var r = e["reason"]
 			_counters["dropped"][r] = _counters["dropped"].get(r, 0) + 1
@@ -283,6 +295,9 @@ func snapshot() -> Dictionary:
 	return s
 
 
+# Any thread: sent, replies, error_replies, notices (by code), dropped (by reason), late,
+# skipped and no-pose ticks; hellos (ticks sent without a stream), streams (streams opened),
+# stream (the one in use, 0 while saying hello).
 func counters() -> Dictionary:
 	_mutex.lock()
 	var c = _counters.duplicate(true)

@@ -117,10 +117,18 @@ void UBurrforceComponent::StartStreaming()
 			FBurrforceRuntime* Raw = R.Get();
 			S->on_notice([Raw](const burrforce::Event& Ev)
 			{
+				// Every hello in flight is answered, and every POSE in flight on a closed
+				// stream refused: only the notice that moved the stream is news.
+				const uint16 Code = Ev.notice.error;
+				if ((Code == burrforce::NEW_STREAM || Code == burrforce::WRONG_STREAM)
+					&& !Ev.stream_changed)
+				{
+					return;
+				}
 				std::lock_guard<std::mutex> Lock(Raw->NoticeMutex);
 				if (Raw->Notices.size() < Raw->Notices.capacity())
 				{
-					Raw->Notices.push_back(Ev.notice.error);
+					Raw->Notices.push_back(Code);
 				}
 			});
 			if (R->bStopping)
@@ -239,6 +247,7 @@ void UBurrforceComponent::ReadState()
 	const burrforce::Counters& C = Runtime->Streamer->counters();
 	PosesSent = static_cast<int64>(C.sent.load());
 	RepliesReceived = static_cast<int64>(C.replies.load());
+	StreamId = static_cast<int64>(Runtime->Streamer->stream());
 
 	OnForce.Broadcast(ForceN, ForceForAddForce);
 	if (Status != LastStatus)

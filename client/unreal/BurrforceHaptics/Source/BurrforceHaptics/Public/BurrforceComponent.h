@@ -172,13 +172,21 @@ public:
 	UPROPERTY(BlueprintReadOnly, Category = "Burrforce|Output")
 	int32 ActiveSessionId = 0;
 
+	/// The stream number the server handed out (protocol v2), 0 while asking for one. A
+	/// new number after a server restart or a REST restart-stream: the component asked
+	/// for it by itself.
+	UPROPERTY(BlueprintReadOnly, Category = "Burrforce|Output")
+	int64 StreamId = 0;
+
 	UPROPERTY(BlueprintAssignable, Category = "Burrforce")
 	FBurrforceForceEvent OnForce;
 
 	UPROPERTY(BlueprintAssignable, Category = "Burrforce")
 	FBurrforceStatusEvent OnStatusChanged;
 
-	/// A NOTICE (UNKNOWN_SESSION, BAD_TAG: the key is wrong, ...): a diagnostic, not a force.
+	/// A NOTICE (UNKNOWN_SESSION, BAD_TAG: the key is wrong, BAD_VERSION: the server does
+	/// not speak protocol v2, ...): a diagnostic, not a force. Of the stream handshake's
+	/// notices only those that gave or took the stream (NEW_STREAM, WRONG_STREAM) are passed.
 	UPROPERTY(BlueprintAssignable, Category = "Burrforce")
 	FBurrforceNoticeEvent OnNotice;
 
@@ -188,7 +196,9 @@ public:
 	UFUNCTION(BlueprintCallable, Category = "Burrforce")
 	void SetTool(USceneComponent* InTool) { Tool = InTool; }
 
-	/// Starts a new stream (after a server restart or a REST restart-stream).
+	/// Asks the server for a new stream (its first tick has no velocity estimate). Never
+	/// needed to recover: after a server restart or a REST restart-stream the server refuses
+	/// the old stream and the component asks for a new one by itself.
 	UFUNCTION(BlueprintCallable, Category = "Burrforce")
 	void RestartStream();
 

@@ -1,0 +1,446 @@
+"""The data directory as the user sees it: what is stored (uploads, snapshots, recordings and
+the exports being served), how much of the budget it takes, and deleting it safely.
+
+The budget (``ServeConfig.data_budget_bytes``, 0: none) counts every file under uploads/,
+snapshots/, recordings/ and exports/; the journal (data_dir/journal) is reported but not
+counted, since the server needs it whatever the user keeps. A running recording holds room up
+to its ``max_bytes`` (reserved): it was capped by the room left when it started, so it stops
+cleanly at the budget instead of filling the disk, and other writes cannot take that room
+from it.
+
+Names from URLs are resolved here and only here: a name is one plain path component of the
+kind's form (an upload id, a snapshot or recording name), never ``..``, a slash, an absolute
+path or a NUL, so nothing outside the kind's folder can be listed, read or deleted.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tarfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from .manager import ApiError, ControlPlane, snapshot_entry
+from .sources import SNAPSHOT_SUFFIX, UPLOAD_ID, SourceError, snapshot_path
+
+#: Folders of the data directory the budget counts, by kind.
+COUNTED = ("uploads", "snapshots", "recordings", "exports")
+#: Folders reported but not counted.
+UNCOUNTED = ("journal",)
+RECORDING_SUFFIX = ".burrrec"
+RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
+#: Room a recording needs beyond its chunk files (which ``max_bytes`` bounds): meta, start
+#: patch and summary, all small.
+RECORDING_MARGIN_BYTES = 64 << 10
+#: Where the user looks and what the user deletes, quoted in every over-budget answer.
+WHAT_TO_DELETE = ("GET /v1/storage shows what is stored; DELETE /v1/uploads/ID, "
+                  "/v1/snapshots/NAME or /v1/recordings/NAME frees it")
+TAR_MEDIA_TYPE = "application/x-tar"
+_TAR_BLOCK_BYTES = tarfile.BLOCKSIZE
+_TAR_RECORD_BYTES = tarfile.RECORDSIZE
+_READ_BYTES = 1 << 20
+
+
+# -- usage --------------------------------------------------------------------------------------
+def tree_bytes(path: Path) -> tuple[int, int]:
+    """(bytes, files) of the regular files under ``path`` (symbolic links are not followed;
+    files removed meanwhile, like an export just served, are skipped)."""
+    total = files = 0
+    todo = [path]
+    while todo:
+        try:
+            entries = os.scandir(todo.pop())
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        with entries:
+            for entry in entries:
+                try:
+                    if entry.is_dir(follow_symlinks=False):
+                        todo.append(Path(entry.path))
+                    elif entry.is_file(follow_symlinks=False):
+                        total += entry.stat(follow_symlinks=False).st_size
+                        files += 1
+                except FileNotFoundError:
+                    pass
+    return total, files
+
+
+@dataclass(frozen=True)
+class Usage:
+    """The data directory's usage at one moment.
+
+    Attributes:
+        bytes_by_kind: bytes per folder (``COUNTED`` and ``UNCOUNTED``).
+        items_by_kind: uploads, snapshots, recordings and files (exports, journal) per folder.
+        reserved_bytes: room held for running recordings (up to their ``max_bytes``).
+        budget_bytes: the budget, 0 for none.
+    """
+
+    bytes_by_kind: dict[str, int]
+    items_by_kind: dict[str, int]
+    reserved_bytes: int
+    budget_bytes: int
+
+    @property
+    def used_bytes(self) -> int:
+        return sum(self.bytes_by_kind[k] for k in COUNTED)
+
+    @property
+    def free_bytes(self) -> int | None:
+        """Room left under the budget (None: no budget; never negative)."""
+        if not self.budget_bytes:
+            return None
+        return max(0, self.budget_bytes - self.used_bytes - self.reserved_bytes)
+
+    def fits(self, incoming_bytes: int) -> bool:
+        return not self.budget_bytes or (
+            self.used_bytes + self.reserved_bytes + incoming_bytes <= self.budget_bytes)
+
+
+def _items(kind: str, folder: Path, files: int) -> int:
+    if kind == "uploads":
+        return len(_upload_files(folder))
+    if kind == "snapshots":
+        return sum(1 for _ in folder.glob("*" + SNAPSHOT_SUFFIX))
+    if kind == "recordings":
+        return sum(1 for p in folder.glob("*" + RECORDING_SUFFIX) if p.is_dir())
+    return files
+
+
+def measure(plane: ControlPlane) -> Usage:
+    """What the data directory holds now, and what running recordings may still add."""
+    sizes: dict[str, int] = {}
+    items: dict[str, int] = {}
+    for kind in COUNTED + UNCOUNTED:
+        folder = plane.data_dir / kind
+        sizes[kind], files = tree_bytes(folder)
+        items[kind] = _items(kind, folder, files) if folder.is_dir() else 0
+    return Usage(sizes, items, _reserved_bytes(plane), int(plane.config.data_budget_bytes))
+
+
+def _running_recordings(plane: ControlPlane) -> list[tuple[int, dict]]:
+    with plane._lock:
+        sessions = list(plane.sessions.values())
+    return [(s.id, rec) for s in sessions if (rec := s.recording) is not None]
+
+
+def _reserved_bytes(plane: ControlPlane) -> int:
+    reserved = 0
+    for _, rec in _running_recordings(plane):
+        cap = rec.get("max_bytes")
+        if cap is None:
+            continue
+        written = sum(p.stat().st_size for p in Path(rec["path"]).glob("chunk-*")
+                      if p.is_file())
+        reserved += max(0, int(cap) - written)
+    return reserved
+
+
+def report(plane: ControlPlane) -> dict:
+    """``GET /v1/storage``: usage per kind, the budget, what is left."""
+    u = measure(plane)
+    try:
+        disk_free = shutil.disk_usage(plane.data_dir).free
+    except OSError:
+        disk_free = None
+    kinds = {kind: {"bytes": u.bytes_by_kind[kind], "items": u.items_by_kind[kind],
+                    "counted": kind in COUNTED} for kind in COUNTED + UNCOUNTED}
+    for kind in ("uploads", "snapshots", "recordings"):
+        kinds[kind]["list"] = f"/v1/{kind}"
+    return {"data_dir": str(plane.data_dir), "budget_bytes": u.budget_bytes,
+            "used_bytes": u.used_bytes, "reserved_bytes": u.reserved_bytes,
+            "free_bytes": u.free_bytes, "disk_free_bytes": disk_free, "kinds": kinds}
+
+
+def human_bytes(n: int) -> str:
+    """``1536`` → ``1.5 KiB``."""
+    value = float(n)
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(value) < 1024 or unit == "TiB":
+            return f"{int(value)} B" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    raise AssertionError("unreachable")
+
+
+def over_budget(u: Usage, what: str, status: int, incoming_bytes: int = 0) -> ApiError:
+    """The answer to a write that does not fit: the budget, the usage, what to delete."""
+    parts = ", ".join(f"{k} {human_bytes(u.bytes_by_kind[k])}" for k in COUNTED)
+    held = (f", {human_bytes(u.reserved_bytes)} held for running recordings"
+            if u.reserved_bytes else "")
+    size = f" ({human_bytes(incoming_bytes)})" if incoming_bytes else ""
+    return ApiError(status, f"{what}{size} does not fit in the data directory's budget of "
+                            f"{human_bytes(u.budget_bytes)} (data_budget_bytes): "
+                            f"{human_bytes(u.used_bytes)} is used ({parts}){held}. "
+                            f"{WHAT_TO_DELETE}")
+
+
+def require_room(plane: ControlPlane, what: str, status: int = 507,
+                 incoming_bytes: int = 0) -> Usage:
+    """Raise ``status`` unless ``incoming_bytes`` more fit under the budget; with no size
+    known (0), unless some room is left at all. Returns the usage measured."""
+    u = measure(plane)
+    full = u.budget_bytes and u.free_bytes == 0
+    if not u.fits(incoming_bytes) or (incoming_bytes == 0 and full):
+        raise over_budget(u, what, status, incoming_bytes)
+    return u
+
+
+def check_written(plane: ControlPlane, path: Path, what: str) -> None:
+    """After writing ``path`` (whose size was unknown beforehand): if it took the data
+    directory over the budget, remove it and raise 507."""
+    u = measure(plane)
+    if u.fits(0):
+        return
+    size = tree_bytes(path)[0] if path.is_dir() else path.stat().st_size
+    _remove(path)
+    raise over_budget(u, what, 507, size)
+
+
+def recording_cap(plane: ControlPlane, max_bytes: int) -> int:
+    """``max_bytes`` capped by the room left (measured after the recording's start snapshot
+    was written); 507 when nothing is left."""
+    u = measure(plane)
+    if not u.budget_bytes:
+        return max_bytes
+    room = (u.free_bytes or 0) - RECORDING_MARGIN_BYTES
+    if room <= 0:
+        raise over_budget(u, "a recording", 507)
+    return min(max_bytes, room)
+
+
+# -- names --------------------------------------------------------------------------------------
+def plain_name(name: str, what: str) -> str:
+    """``name`` if it is one plain path component; 400 for traversal, absolute paths, NUL."""
+    if not name or "\x00" in name or "/" in name or "\\" in name or ".." in name \
+            or name.startswith("."):
+        raise ApiError(400, f"{what} name {name!r} must be a plain name of letters, digits, "
+                            "'_', '-', '.': no '/', '\\', '..', leading '.' or NUL")
+    return name
+
+
+def _inside(folder: Path, path: Path, what: str, name: str) -> Path:
+    # A symbolic link planted in the folder must not lead a delete or download elsewhere.
+    if path.is_symlink() or folder.resolve() != path.resolve().parent:
+        raise ApiError(400, f"{what} {name!r} is not in the {what}s folder")
+    return path
+
+
+def _upload_files(folder: Path) -> list[Path]:
+    # Uploads in flight are ``.upload-*`` temporaries: not an upload yet.
+    return sorted(p for p in folder.glob("*.*") if not p.name.startswith(".")
+                  and UPLOAD_ID.match(p.name.split(".", 1)[0]))
+
+
+def upload_file(plane: ControlPlane, upload_id: str) -> Path:
+    """The stored file of upload ``upload_id`` (``ID`` or ``upload:ID``); 400 or 404."""
+    upload_id = plain_name(upload_id.removeprefix("upload:"), "upload")
+    if not UPLOAD_ID.match(upload_id):
+        raise ApiError(400, f"upload id {upload_id!r} is not one this server issues "
+                            "(16 hex digits)")
+    matches = sorted(plane.roots.uploads.glob(upload_id + ".*"))
+    if not matches:
+        raise ApiError(404, f"no upload {upload_id}")
+    return _inside(plane.roots.uploads, matches[0], "upload", upload_id)
+
+
+def snapshot_file(plane: ControlPlane, name: str) -> Path:
+    """The file of snapshot ``name`` (``NAME``, ``NAME.bone.npz`` or ``snapshot:NAME``)."""
+    name = plain_name(name.removeprefix("snapshot:"), "snapshot")
+    try:
+        path = snapshot_path(plane.roots.snapshots, name)
+    except SourceError as exc:
+        raise ApiError(exc.status, str(exc)) from None
+    if not path.is_file():
+        raise ApiError(404, f"no snapshot {name!r}")
+    return _inside(plane.roots.snapshots, path, "snapshot", name)
+
+
+def recording_dir(plane: ControlPlane, name: str) -> Path:
+    """The directory of recording ``name`` (with or without ``.burrrec``)."""
+    plain_name(name, "recording")
+    if not RECORDING_NAME.match(name):
+        raise ApiError(400, f"recording name {name!r}: letters, digits, '_', '-', '.' only")
+    if not name.endswith(RECORDING_SUFFIX):
+        name += RECORDING_SUFFIX
+    path = plane.recordings_dir / name
+    if not path.is_dir():
+        raise ApiError(404, f"no recording {name!r}")
+    return _inside(plane.recordings_dir, path, "recording", name)
+
+
+# -- listing ------------------------------------------------------------------------------------
+def sessions_from(plane: ControlPlane, path: Path) -> list[int]:
+    """Sessions whose bone was loaded from ``path``."""
+    target = path.resolve()
+    with plane._lock:
+        sessions = list(plane.sessions.values())
+    return sorted(s.id for s in sessions
+                  if s.source.path is not None and Path(s.source.path).resolve() == target)
+
+
+def _loading_from(plane: ControlPlane, sources: set[str]) -> list[str]:
+    with plane._lock:
+        jobs = list(plane.jobs.values())
+    return [j.id for j in jobs if j.state in ("queued", "running") and j.source in sources]
+
+
+def list_uploads(plane: ControlPlane) -> list[dict]:
+    out = []
+    for path in _upload_files(plane.roots.uploads):
+        upload_id = path.name.split(".", 1)[0]
+        st = path.stat()
+        out.append({"id": upload_id, "source": f"upload:{upload_id}", "file": path.name,
+                    "bytes": st.st_size, "created": st.st_mtime,
+                    "in_use_by": sessions_from(plane, path)})
+    return out
+
+
+def list_snapshots(plane: ControlPlane) -> list[dict]:
+    return [{**snapshot_entry(p), "in_use_by": sessions_from(plane, p)}
+            for p in sorted(plane.roots.snapshots.glob("*" + SNAPSHOT_SUFFIX))]
+
+
+def _writer(plane: ControlPlane, path: Path) -> int | None:
+    """The session writing recording ``path``, if one is."""
+    target = path.resolve()
+    for session_id, rec in _running_recordings(plane):
+        if Path(rec["path"]).resolve() == target:
+            return session_id
+    return None
+
+
+def list_recordings(plane: ControlPlane) -> list[dict]:
+    out = []
+    for path in sorted(plane.recordings_dir.glob("*" + RECORDING_SUFFIX)):
+        if not path.is_dir():
+            continue
+        size, files = tree_bytes(path)
+        mtimes = [p.stat().st_mtime for p in path.iterdir() if p.is_file()]
+        meta = path / "meta.json"
+        out.append({"name": path.name, "bytes": size, "files": files,
+                    "created": meta.stat().st_mtime if meta.exists() else path.stat().st_mtime,
+                    "modified": max(mtimes, default=path.stat().st_mtime),
+                    "complete": (path / "summary.json").exists(),
+                    "recording_session": _writer(plane, path),
+                    "replay": f"burrforce replay {path}"})
+    return out
+
+
+# -- deleting -----------------------------------------------------------------------------------
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _deleted(kind: str, name: str, size: int, users: list[int],
+             source: str | None) -> dict:
+    answer: dict = {"deleted": name, "kind": kind, "bytes": size, "in_use_by": users,
+                    "note": None}
+    if users:
+        # The bone is in the sessions' memory already; only reloading it needs the file.
+        answer["note"] = (f"session{'s' if len(users) > 1 else ''} "
+                          f"{', '.join(map(str, users))} loaded {source} and keep"
+                          f"{'' if len(users) > 1 else 's'} its bone, but a reset will fail "
+                          "and, after a crash or restart, the session cannot be resumed from "
+                          "its journal: the file is gone")
+    return answer
+
+
+def _delete_bone_file(plane: ControlPlane, kind: str, name: str, path: Path,
+                      sources: set[str], force: bool = False) -> dict:
+    jobs = _loading_from(plane, sources)
+    if jobs:
+        raise ApiError(409, f"{kind} {name!r} is being loaded (job {', '.join(jobs)}): "
+                            "delete it once the load is done")
+    users = sessions_from(plane, path)
+    if users and not force:
+        # Their bone is in memory, but a reset reloads the file, and so does resuming them
+        # from the journal after a crash: deleting it is the user's call, made knowingly.
+        raise ApiError(409, f"{kind} {name!r} is the bone of session"
+                            f"{'s' if len(users) > 1 else ''} {', '.join(map(str, users))}: "
+                            "a reset, and resuming after a crash or restart, need it. Delete "
+                            "those sessions first, or add ?force=true to delete it anyway")
+    size = path.stat().st_size
+    path.unlink(missing_ok=True)
+    return _deleted(kind, name, size, users, sorted(sources)[0])
+
+
+def delete_upload(plane: ControlPlane, upload_id: str, force: bool = False) -> dict:
+    path = upload_file(plane, upload_id)
+    upload_id = path.name.split(".", 1)[0]
+    return _delete_bone_file(plane, "upload", upload_id, path, {f"upload:{upload_id}"},
+                             force)
+
+
+def delete_snapshot(plane: ControlPlane, name: str, force: bool = False) -> dict:
+    path = snapshot_file(plane, name)
+    stem = path.name[: -len(SNAPSHOT_SUFFIX)]
+    return _delete_bone_file(plane, "snapshot", stem, path,
+                             {f"snapshot:{stem}", f"snapshot:{path.name}"}, force)
+
+
+def delete_recording(plane: ControlPlane, name: str) -> dict:
+    """Remove a recording; 409 while a session writes it."""
+    path = recording_dir(plane, name)
+    writer = _writer(plane, path)
+    if writer is not None:
+        raise ApiError(409, f"recording {path.name!r} is being written by session {writer}: "
+                            f"stop it first (DELETE /v1/sessions/{writer}/recording)")
+    size = tree_bytes(path)[0]
+    shutil.rmtree(path)
+    return _deleted("recording", path.name, size, [], None)
+
+
+# -- recordings as one download -----------------------------------------------------------------
+@dataclass(frozen=True)
+class Archive:
+    """A recording as an uncompressed tar stream (``NAME.burrrec/...`` members): its chunks
+    are binary rows that hardly compress, and a tar's length is known before it is sent."""
+
+    filename: str
+    size_bytes: int
+    _members: tuple[tuple[bytes, Path, int], ...]
+
+    def chunks(self) -> Iterator[bytes]:
+        """The archive's bytes, one file read at a time (``_READ_BYTES`` each)."""
+        sent = 0
+        for header, path, size in self._members:
+            yield header
+            left = size
+            with open(path, "rb") as f:
+                while left > 0:
+                    data = f.read(min(_READ_BYTES, left))
+                    if not data:  # shrank since it was listed: keep the header's promise
+                        data = b"\0" * left
+                    left -= len(data)
+                    yield data
+            yield b"\0" * (-size % _TAR_BLOCK_BYTES)
+            sent += len(header) + size + (-size % _TAR_BLOCK_BYTES)
+        yield b"\0" * (self.size_bytes - sent)
+
+
+def recording_archive(plane: ControlPlane, name: str) -> Archive:
+    """Recording ``name`` as a tar archive; 409 while a session writes it (its files are
+    still growing, so an archive of them would not be one recording)."""
+    path = recording_dir(plane, name)
+    writer = _writer(plane, path)
+    if writer is not None:
+        raise ApiError(409, f"recording {path.name!r} is being written by session {writer}: "
+                            f"stop it first (DELETE /v1/sessions/{writer}/recording)")
+    members = []
+    size = 0
+    for file in sorted(p for p in path.rglob("*") if p.is_file() and not p.is_symlink()):
+        st = file.stat()
+        info = tarfile.TarInfo(f"{path.name}/{file.relative_to(path).as_posix()}")
+        info.size, info.mtime, info.mode = st.st_size, int(st.st_mtime), 0o644
+        header = info.tobuf(tarfile.PAX_FORMAT)
+        members.append((header, file, st.st_size))
+        size += len(header) + st.st_size + (-st.st_size % _TAR_BLOCK_BYTES)
+    size += 2 * _TAR_BLOCK_BYTES  # the end-of-archive marker
+    size += -size % _TAR_RECORD_BYTES
+    return Archive(path.name + ".tar", size, tuple(members))

@@ -1,0 +1,255 @@
+"""Keeps the hot loop alive: a dead or wedged loop is reported, replaced and refilled.
+
+The hot loop is a process of its own (``hotloop.process``); it can be killed (OOM killer,
+``kill -9``, a crash in native code) or wedge (a tick that never ends). The supervisor watches
+its exit status and its heartbeat; when either fails it says so (console, log, health,
+metrics), kills what is left, starts a new loop on the same UDP port and puts every session
+back with its id, key, parameters and carved bone (``ControlPlane.rebuild``). Engines see
+their stream refused once (WRONG_STREAM), say hello again and go on with the same key.
+
+If a new loop cannot be started ``MAX_FAILED_STARTS`` times in a row, the supervisor gives
+up and asks the server to exit with an error, so a process manager (docker's restart
+policy, systemd) restarts the whole server: a server that cannot serve must not look alive.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+from ..hotloop import HotLoopConfig, HotLoopProcess
+from .manager import ControlPlane
+from .metrics import LoopStats
+
+log = logging.getLogger("burrforce.supervisor")
+
+#: How often the loop's state is checked, s.
+CHECK_INTERVAL_S = 0.05
+#: A loop whose heartbeat (every 0.1 s) has been silent this long is wedged, s. Generous:
+#: a busy 2-core machine can delay a thread by a second, and a restart costs every engine a
+#: stream.
+WEDGED_AFTER_S = 3.0
+#: Consecutive failed starts before the server gives up and exits.
+MAX_FAILED_STARTS = 5
+#: Wait between failed starts, s (doubles each time).
+RETRY_S = 0.5
+#: After a restart, the next spare is warmed this much later, s.
+SPARE_DELAY_S = 20.0
+#: Exit status of ``burrforce serve`` when the hot loop cannot be brought back.
+EXIT_LOOP_LOST = 3
+
+
+@dataclass
+class Restart:
+    """One restart: why, when, and how long until the sessions were back."""
+
+    reason: str
+    at_s: float
+    sessions: int = 0
+    recovery_s: float | None = None
+    notes: tuple[str, ...] = ()
+
+    def public(self) -> dict:
+        return {"reason": self.reason, "at": self.at_s, "sessions": self.sessions,
+                "recovery_s": None if self.recovery_s is None else round(self.recovery_s, 3),
+                "notes": list(self.notes)}
+
+
+class Supervisor:
+    """Watches ``plane.hot`` from a thread and replaces it when it dies or wedges.
+
+    Args:
+        plane: the control plane (its ``hot`` is replaced on a restart).
+        stats: the statistics poller (it knows each session's last stream number).
+        say: where console lines go (``burrforce serve`` prints them), besides the log.
+        give_up: called once when the loop cannot be restarted (default: SIGTERM to this
+            process, which stops ``serve``; it then exits with ``EXIT_LOOP_LOST``).
+    """
+
+    def __init__(self, plane: ControlPlane, stats: LoopStats,
+                 say: Callable[[str], None] | None = None,
+                 give_up: Callable[[], None] | None = None) -> None:
+        self.plane = plane
+        self.stats = stats
+        self.say = say
+        self.give_up = give_up or _terminate_self
+        #: "running", "restarting" or "lost" (gave up).
+        self.state = "running"
+        self.restarts: list[Restart] = []
+        self.failed_starts = 0
+        #: A warm, unstarted loop that replaces a crashed one (``spawn_spare``).
+        self.spare: HotLoopProcess | None = None
+        self._spare_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- lifetime ---------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="burrforce-supervisor",
+                                        daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(10.0)
+            self._thread = None
+        with self._spare_lock:
+            spare, self.spare = self.spare, None
+        if spare is not None:
+            spare.stop()
+
+    def _keep_spare(self, delay_s: float = 0.0) -> None:
+        """Warm a spare loop in the background (for the same address as the running one),
+        after ``delay_s``."""
+        def warm() -> None:
+            if self._stop.wait(delay_s):
+                return
+            hot = self.plane.hot
+            spare = HotLoopProcess(HotLoopConfig(*(hot.address or (hot.config.host,
+                                                                   hot.config.udp_port))))
+            try:
+                spare.spawn_spare()
+            except RuntimeError as exc:
+                log.warning("no spare hot loop (a restart will take longer): %s", exc)
+                return
+            with self._spare_lock:
+                if self._stop.is_set() or self.spare is not None:
+                    spare.stop()
+                    return
+                self.spare = spare
+
+        threading.Thread(target=warm, name="burrforce-spare", daemon=True).start()
+
+    def _take_spare(self, address: tuple[str, int]) -> HotLoopProcess:
+        with self._spare_lock:
+            spare, self.spare = self.spare, None
+        if spare is not None and spare.is_alive() and spare.config.udp_port == address[1]:
+            return spare
+        if spare is not None:
+            spare.stop()
+        return HotLoopProcess(HotLoopConfig(address[0], address[1], ()))
+
+    def public(self) -> dict:
+        """For /v1/health: the loop's state and its restarts."""
+        last = self.restarts[-1].public() if self.restarts else None
+        hot = self.plane.hot
+        return {"state": self.state, "pid": hot.pid if hot.is_alive() else None,
+                "restarts": len(self.restarts), "last_restart": last}
+
+    # -- watching ---------------------------------------------------------------------------
+    def _run(self) -> None:
+        self._keep_spare()
+        while not self._stop.wait(CHECK_INTERVAL_S):
+            reason = self.check()
+            if reason is not None:
+                self.restart(reason)
+
+    def check(self) -> str | None:
+        """Why the loop needs replacing now, or None while it is fine."""
+        hot = self.plane.hot
+        if hot.wedged is not None:
+            return f"not answering: {hot.wedged}"
+        if not hot.is_alive():
+            return f"exited ({_describe_exit(hot.exit_code)})"
+        age = hot.heartbeat_age_s()
+        if age > WEDGED_AFTER_S:
+            return f"no heartbeat for {age:.1f} s (a tick that does not end)"
+        return None
+
+    def restart(self, reason: str) -> bool:
+        """Replace the loop; True once sessions are back. Gives up (``give_up``) after
+        ``MAX_FAILED_STARTS`` failed starts in a row."""
+        plane = self.plane
+        old = plane.hot
+        record = Restart(reason, time.time())
+        self.state = "restarting"  # before the record: a watcher sees both or neither
+        self.restarts.append(record)
+        t0 = time.monotonic()
+        self._tell(f"HOT LOOP {reason}: restarting it and its "
+                   f"{sum(s.in_loop for s in plane.sessions.values())} session(s)",
+                   logging.ERROR)
+        streams = _last_streams(self.stats)
+        address = old.address or (old.config.host, old.config.udp_port)
+        old._kill(force=True)
+        delay = RETRY_S
+        while not self._stop.is_set():
+            new = self._take_spare(address)
+            try:
+                new.start()
+            except RuntimeError as exc:
+                self.failed_starts += 1
+                self._tell(f"hot loop restart {self.failed_starts}/{MAX_FAILED_STARTS} "
+                           f"failed: {exc}", logging.ERROR)
+                if self.failed_starts >= MAX_FAILED_STARTS:
+                    self.state = "lost"
+                    self._tell("giving up: the server stops so that its process manager "
+                               "restarts it", logging.CRITICAL)
+                    self.give_up()
+                    return False
+                self._stop.wait(delay)
+                delay *= 2
+                continue
+            self.failed_starts = 0
+            record.notes = tuple(plane.rebuild(new, streams))
+            self.stats.forget_sessions()  # numbers from the old loop are not the new one's
+            record.sessions = sum(s.in_loop for s in plane.sessions.values())
+            record.recovery_s = time.monotonic() - t0
+            self.state = "running"
+            # Not at once: warming a spare is a second of both cores, which the sessions
+            # just back need more (measured: p99 95 ms after a restart with it at once).
+            self._keep_spare(SPARE_DELAY_S)
+            self._tell(f"hot loop back in {record.recovery_s:.2f} s with "
+                       f"{record.sessions} session(s) (restart {len(self.restarts)})"
+                       + "".join(f"; {n}" for n in record.notes), logging.WARNING)
+            return True
+        return False
+
+    def _tell(self, text: str, level: int) -> None:
+        if self.say is not None:
+            self.say(text)
+        else:
+            log.log(level, text)
+
+    # -- metrics ----------------------------------------------------------------------------
+    def collect(self):  # the prometheus_client collector protocol
+        restarts = CounterMetricFamily("burrforce_hotloop_restarts",
+                                       "Times the hot loop died or wedged and was replaced")
+        restarts.add_metric([], len(self.restarts))
+        up = GaugeMetricFamily("burrforce_hotloop_up", "1 while the hot loop runs")
+        up.add_metric([], 1.0 if self.state == "running" else 0.0)
+        yield from (restarts, up)
+        if self.restarts and self.restarts[-1].recovery_s is not None:
+            recovery = GaugeMetricFamily("burrforce_hotloop_last_recovery_seconds",
+                                         "From noticing the last failure to sessions back")
+            recovery.add_metric([], self.restarts[-1].recovery_s)
+            yield recovery
+
+
+def _last_streams(stats: LoopStats) -> dict[int, int]:
+    latest = stats.latest or {}
+    # next_stream, not stream: it is never 0 (no stream open) and lies past every number
+    # the loop handed out.
+    return {sid: int(s["next_stream"]) for sid, s in latest.get("sessions", {}).items()
+            if s.get("next_stream")}
+
+
+def _describe_exit(code: int | None) -> str:
+    if code is None:
+        return "status unknown"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
+def _terminate_self() -> None:
+    signal.raise_signal(signal.SIGTERM)
