@@ -314,3 +314,15 @@ def test_a_bone_reset_after_a_restart_never_offers_an_old_stream_again(stack):
         answer = decode_server_message(raw.recv(2048))
         assert isinstance(answer, Notice) and answer.error == WRONG_STREAM
     assert stack.hot.call("stats")["sessions"][session.id]["accepted"] == 0
+
+
+def test_sigterm_to_the_hot_loop_is_left_to_its_parent(stack):
+    """A terminal, `timeout` or systemd signal the whole process group: the loop leaves
+    SIGTERM to ``serve``, which stops it through the pipe, instead of dying and being
+    restarted in the middle of a shutdown."""
+    _session(stack)
+    pid = stack.hot.pid
+    os.kill(pid, signal.SIGTERM)
+    assert stack.hot.call("stats")["sessions"]  # answered after the signal: still serving
+    assert stack.hot.is_alive() and stack.hot.pid == pid
+    assert stack.supervisor.restarts == []

@@ -177,7 +177,7 @@ class Supervisor:
                    logging.ERROR)
         streams = _last_streams(self.stats)
         address = old.address or (old.config.host, old.config.udp_port)
-        old._kill(force=True)
+        old.kill()
         delay = RETRY_S
         while not self._stop.is_set():
             new = self._take_spare(address)

@@ -382,6 +382,8 @@ def _report(stats, session_id: int, done: threading.Event, say, devices=None) ->
         now = time.monotonic()
         counters = latest["counters"]
         received = counters["received"]
+        if last_received is not None and received < last_received:
+            last_received = None  # a restarted hot loop counts from zero again
         if last_received is not None and received != last_received:
             rate = (received - last_received) / (now - last_t)
             s = latest["sessions"].get(session_id, {})

@@ -168,7 +168,7 @@ class HotLoopProcess:
         except RuntimeError as exc:
             message = ("error", str(exc))
         if message[0] != "ready":
-            self._kill()
+            self.kill()
             raise RuntimeError(message[1])
         self.address = (message[1], message[2])
         self.bones = message[3]
@@ -196,7 +196,7 @@ class HotLoopProcess:
         except RuntimeError as exc:
             message = ("error", str(exc))
         if message[0] != "warm":
-            self._kill()
+            self.kill()
             raise RuntimeError(message[1])
 
     @property
@@ -239,7 +239,7 @@ class HotLoopProcess:
                 conn.send((command, kwargs))
                 if not conn.poll(timeout_s):
                     self.wedged = f"{command!r} got no answer within {timeout_s:g} s"
-                    self._kill(force=True)
+                    self.kill()
                     raise RuntimeError(f"the hot loop is not answering ({self.wedged}): "
                                        "it was stopped and is being restarted")
                 status, result = conn.recv()
@@ -295,22 +295,17 @@ class HotLoopProcess:
             self._proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
             pass
-        self._kill()
+        self.kill()
 
-    def _kill(self, force: bool = False) -> None:
-        """End the process (SIGTERM, then SIGKILL; ``force``: SIGKILL at once, for a wedged
-        loop that would not act on anything gentler) and close the pipes."""
+    def kill(self) -> None:
+        """End the process and close the pipes. SIGKILL: the loop ignores SIGTERM (its
+        parent stops it through the pipe), a wedged one would not act on anything gentler,
+        and it holds nothing that needs cleaning up (its shared bones' names are gone,
+        devices have processes of their own)."""
         proc = self._proc
         if proc is not None and proc.poll() is None:
-            if force:
-                proc.kill()
-            else:
-                proc.terminate()
-            try:
-                proc.wait(5.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            proc.kill()
+            proc.wait()
         if proc is not None:
             self._exit_code = proc.returncode
         for pipe in (self._conn, self._beat):
@@ -334,8 +329,11 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     """The hot-loop process: read the config, build and warm the sessions, open the port,
     report ready, then serve packets (this thread), commands (another thread) and the
     heartbeat on ``beat`` (a third)."""
-    # The parent owns Ctrl-C and stops the loop through the pipe, after zeroing what it must.
+    # The parent owns Ctrl-C and SIGTERM (a terminal, `timeout` or systemd signal the whole
+    # group) and stops the loop through the pipe, after zeroing what it must; were the loop
+    # to die of them first, its supervisor would restart it in the middle of a shutdown.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise_priority()
     try:
         config = conn.recv()
