@@ -31,7 +31,14 @@ from pathlib import Path
 
 from .config import is_loopback
 from .journal_carve import CarveLog, apply_log, read_log, write_atomic
-from .manager import ApiError, ControlPlane, ManagedSession, later_stream, next_stream_after
+from .manager import (
+    ApiError,
+    ControlPlane,
+    ManagedSession,
+    journal_dir,
+    later_stream,
+    next_stream_after,
+)
 from .models import Features, Parameters
 from .sources import SourceError, file_source
 
@@ -45,10 +52,6 @@ INTERVAL_S = 1.0
 MAX_AGE_DAYS = 30
 SESSION_FILE = "session.json"
 CARVE_FILE = "carve.log"
-
-
-def journal_dir(data_dir: Path) -> Path:
-    return Path(data_dir).expanduser() / "journal" / "sessions"
 
 
 def session_record(session: ManagedSession, stream: int | None) -> dict:

@@ -263,8 +263,7 @@ class ControlPlane:
             with self._lock:
                 self.sessions.pop(session_id, None)
             # Now, not at the journal's next pass: a stop meanwhile must not resume it.
-            shutil.rmtree(self.data_dir / "journal" / "sessions" / str(session_id),
-                          ignore_errors=True)
+            shutil.rmtree(journal_dir(self.data_dir) / str(session_id), ignore_errors=True)
             try:
                 if session.in_loop:
                     session.in_loop = False
@@ -791,6 +790,11 @@ class ControlPlane:
             return resolve(source, self.roots, kind, voxel_mm, spacing_mm)
         except SourceError as exc:
             raise ApiError(exc.status, str(exc)) from None
+
+
+def journal_dir(data_dir: Path) -> Path:
+    """Where the session journal (``journal``) keeps one folder per session."""
+    return Path(data_dir).expanduser() / "journal" / "sessions"
 
 
 def remove_stale_run_directories(base: Path, keep: Path) -> list[Path]:

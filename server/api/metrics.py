@@ -77,6 +77,13 @@ class LoopStats:
             self.latest = stats
         return stats
 
+    def next_streams(self) -> dict[int, int]:
+        """Per session, the next stream number the loop last reported: never 0 (unlike the
+        open stream, 0 while none is) and past every number it handed out."""
+        latest = self.latest or {}
+        return {sid: int(s["next_stream"]) for sid, s in latest.get("sessions", {}).items()
+                if s.get("next_stream")}
+
     def forget_sessions(self) -> None:
         """Drop the per-session statistics of a loop that was replaced (the next poll brings
         the new one's); the counters stay until then."""

@@ -29,14 +29,6 @@ START_TIMEOUT_S = 600.0
 log = logging.getLogger("burrforce.api")
 
 
-def _stream(stats: LoopStats, session_id: int) -> int | None:
-    """The next stream number the hot loop last reported for a session (never 0, past every
-    number it handed out; None: not reported yet)."""
-    latest = stats.latest or {}
-    stream = latest.get("sessions", {}).get(session_id, {}).get("next_stream")
-    return int(stream) if stream else None
-
-
 class ServerStack:
     """Hot loop + control plane + REST app (+ an optional default session).
 
@@ -79,7 +71,7 @@ class ServerStack:
             self.supervisor.start()
             if self.use_journal:
                 stats = self.stats
-                self.journal = Journal(plane, lambda sid: _stream(stats, sid))
+                self.journal = Journal(plane, lambda sid: stats.next_streams().get(sid))
                 self.resumed = resume(plane, self.journal, self.say or log.info)
                 self.journal.start()
             app = create_app(plane, self.token, self.stats, self.supervisor)

@@ -175,7 +175,7 @@ class Supervisor:
         self._tell(f"HOT LOOP {reason}: restarting it and its "
                    f"{sum(s.in_loop for s in plane.sessions.values())} session(s)",
                    logging.ERROR)
-        streams = _last_streams(self.stats)
+        streams = self.stats.next_streams()
         address = old.address or (old.config.host, old.config.udp_port)
         old.kill()
         delay = RETRY_S
@@ -230,14 +230,6 @@ class Supervisor:
                                          "From noticing the last failure to sessions back")
             recovery.add_metric([], self.restarts[-1].recovery_s)
             yield recovery
-
-
-def _last_streams(stats: LoopStats) -> dict[int, int]:
-    latest = stats.latest or {}
-    # next_stream, not stream: it is never 0 (no stream open) and lies past every number
-    # the loop handed out.
-    return {sid: int(s["next_stream"]) for sid, s in latest.get("sessions", {}).items()
-            if s.get("next_stream")}
 
 
 def _describe_exit(code: int | None) -> str:

@@ -31,6 +31,7 @@ from ...proto.messages import (
     WRONG_STREAM,
     Pose,
 )
+from .bucket import TokenBucket
 from .session import Session
 
 log = logging.getLogger("burrforce.hotloop")
@@ -65,8 +66,7 @@ class Dispatcher:
         #: The last datagram :meth:`handle` took was a POSE a session accepted (authentic, in
         #: its open stream, newer than the last): the loop gives its sender a socket of its own.
         self.accepted = False
-        self._tokens = NOTICE_BURST
-        self._tokens_ns = 0
+        self._notices = TokenBucket(NOTICE_RATE_HZ, NOTICE_BURST)
         self._internal_logged_ns = -(1 << 62)
 
     def add(self, session: Session) -> None:
@@ -166,10 +166,7 @@ class Dispatcher:
         if header is None:
             return None
         # The rate first: under a flood, suppressed notices are never encoded or signed.
-        self._tokens = min(NOTICE_BURST,
-                           self._tokens + (now_ns - self._tokens_ns) * 1e-9 * NOTICE_RATE_HZ)
-        self._tokens_ns = now_ns
-        if self._tokens < 1.0:
+        if self._notices.refill(now_ns) < 1.0:
             self.counters["notices_suppressed"] += 1
             return None
         if code == BAD_VERSION and version == VERSION_1:  # in v1's shape: "update me"
@@ -179,7 +176,7 @@ class Dispatcher:
                                           session.tagger if session is not None else None)
         if len(notice) > size:
             return None
-        self._tokens -= 1.0
+        self._notices.tokens -= 1.0  # taken only for a notice that is sent
         self.counters["noticed"] += 1
         return notice
 

@@ -27,6 +27,7 @@ import threading
 import time
 
 from ...proto.messages import MAX_REQUEST_BYTES
+from .bucket import TokenBucket
 from .dispatch import Dispatcher
 
 #: Read one byte more than a request may have, so an oversized datagram shows as such (the
@@ -168,10 +169,9 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     last_ns = peers.last_ns
     clock = time.monotonic_ns
     handle = dispatcher.handle
-    tokens = MAIN_BURST
-    tokens_ns = clock()
+    budget = TokenBucket(MAIN_BUDGET_HZ, MAIN_BURST)
     main_on = True
-    housekeeping_ns = tokens_ns
+    housekeeping_ns = clock()
     wait_s = -1.0
     try:
         while True:
@@ -207,10 +207,7 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                     except OSError:
                         counters["send_errors"] += 1
             if main_ready:
-                tokens = min(MAIN_BURST, tokens + (now - tokens_ns) * 1e-9 * MAIN_BUDGET_HZ)
-                tokens_ns = now
-                if tokens >= 1.0:
-                    tokens -= 1.0
+                if budget.take(now):
                     try:
                         data, addr = sock.recvfrom(RECV_BYTES, socket.MSG_DONTWAIT)
                     except BlockingIOError:
@@ -240,7 +237,7 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                     main_on = False
                     counters["main_deferred"] += 1
             if not main_on:
-                due_s = (1.0 - tokens) / MAIN_BUDGET_HZ - (clock() - tokens_ns) * 1e-9
+                due_s = budget.due_s(clock())
                 if due_s <= 0.0:
                     poller.modify(main_fd, select.EPOLLIN)
                     main_on = True

@@ -47,6 +47,7 @@ from ..model.kernels import (
     OUT_TORQUE,
 )
 from ..model.vibration import VibrationParams
+from .bucket import TokenBucket
 
 ZERO3 = (0.0, 0.0, 0.0)
 #: Model-stage times kept per session for statistics (a ring buffer).
@@ -155,11 +156,11 @@ class Session:
         self.offer = 0
         self.next_stream = next_stream
         self.last_seq: int | None = None
-        #: The session's notice buckets, [NEW_STREAM, WRONG_STREAM]: tokens, refilled at.
-        #: Two, so that replayed POSEs of closed streams (answered WRONG_STREAM) cannot use
-        #: up the answers a client's hellos need.
-        self.notice_tokens = [STREAM_NOTICE_BURST, STREAM_NOTICE_BURST]
-        self.notice_ns = [0, 0]
+        #: The session's notice buckets, for NEW_STREAM and WRONG_STREAM: two, so that
+        #: replayed POSEs of closed streams (answered WRONG_STREAM) cannot use up the
+        #: answers a client's hellos need.
+        self.notice_buckets = (TokenBucket(STREAM_NOTICE_RATE_HZ, STREAM_NOTICE_BURST),
+                               TokenBucket(STREAM_NOTICE_RATE_HZ, STREAM_NOTICE_BURST))
         self.counters = {"accepted": 0, "stale": 0, "duplicate": 0, "bad_value": 0,
                          "internal": 0, "hellos": 0, "streams": 0, "wrong_stream": 0,
                          "velocity_resets": 0, "teleports": 0}
@@ -267,17 +268,7 @@ class Session:
 
     def stream_notice_allowed(self, now_ns: int, wrong_stream: bool = False) -> bool:
         """Take a token from the session's NEW_STREAM (or WRONG_STREAM) notice bucket."""
-        k = 1 if wrong_stream else 0
-        tokens = self.notice_tokens[k]
-        if now_ns > self.notice_ns[k]:  # (a clock that steps back refills nothing)
-            tokens = min(STREAM_NOTICE_BURST,
-                         tokens + (now_ns - self.notice_ns[k]) * 1e-9 * STREAM_NOTICE_RATE_HZ)
-            self.notice_ns[k] = now_ns
-        if tokens < 1.0:
-            self.notice_tokens[k] = tokens
-            return False
-        self.notice_tokens[k] = tokens - 1.0
-        return True
+        return self.notice_buckets[1 if wrong_stream else 0].take(now_ns)
 
     # -- the hot path -----------------------------------------------------------------------
     def admit(self, seq: int) -> int:
@@ -487,7 +478,8 @@ class Session:
         self.ticks_timed = 0
         self.tick_epoch = next(_TICK_EPOCHS)
         self.last_force_N = 0.0
-        self.notice_tokens = [STREAM_NOTICE_BURST, STREAM_NOTICE_BURST]
+        for bucket in self.notice_buckets:
+            bucket.reset()
         self.end_stream()
 
     def tick_times_us(self) -> np.ndarray:
