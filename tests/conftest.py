@@ -8,8 +8,14 @@ import os
 import pytest
 from hypothesis import settings
 
-from burrforce.server.model import CuttingParams, thesis_cases
-from burrforce.server.model.reference import reference_case
+from burrforce.server import compile_cache
+
+# Before numba is imported: the tests and the `burrforce` processes they start then share the
+# command's cache, instead of a fresh machine compiling every kernel twice.
+compile_cache.configure()
+
+from burrforce.server.model import CuttingParams, thesis_cases  # noqa: E402
+from burrforce.server.model.reference import reference_case  # noqa: E402
 
 # numba compiles on first call (seconds with a cold cache): time limits per example would flake.
 settings.register_profile("burrforce", deadline=None)

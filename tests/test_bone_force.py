@@ -203,3 +203,40 @@ def test_step_rejects_bad_flags_and_times():
         engine.step((0, 0, 0), (0, 0, 1), (0, 0, 0), RPM, carve=1)
     with pytest.raises(ValueError, match="time_s"):
         engine.step((0, 0, 0), (0, 0, 1), (0, 0, 0), RPM, time_s=float("nan"))
+
+
+@pytest.mark.parametrize("orientation", ["parallel", "perpendicular", "diagonal"])
+def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
+    """Fine corners copied from a uniform coarse cell instead of sampled must hold what a
+    sample there would give."""
+    from burrforce.server.bone.voxels import sample_bone, sphere_reach
+    from burrforce.server.model.kernels import tool_basis
+
+    case = CuttingCase(orientation, 60.0)
+    engine, centre = steady_engine(case, ticks=120)
+    engine.step(centre, case.axis, case.feed_velocity_mm_s, case.rpm, carve=False)
+    g, b, vert = engine.grid, engine.burr, engine._vert
+    c = g.to_grid_point(np.asarray(centre, dtype=float))
+    axis = g.to_grid_vector(np.asarray(case.axis, dtype=float) / np.linalg.norm(case.axis))
+    e = np.asarray(tool_basis(*axis)).reshape(3, 3)
+    h = g.spacing_mm
+    r_in2, r_out2 = sphere_reach(engine.params.radius_mm, *h)
+    cache = engine._cache
+    o = (np.floor(c / h) - (np.asarray(cache.shape) - 2) // 2).astype(int)
+    in_bone = 0
+    for j in range(b.n_theta + 1):
+        for k in range(b.n_phi):
+            if (j % 2 == 0 or j == b.n_theta) and k % 2 == 0:
+                continue  # coarse corners are always sampled
+            n = (b.sin_theta_v[j] * b.cos_phi_v[k], b.sin_theta_v[j] * b.sin_phi_v[k],
+                 b.cos_theta_v[j])
+            p = c + engine.params.radius_mm * (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
+            frac = sample_bone(g.density, g.swept, g.labels, engine.materials.us,
+                               engine.materials.usk, g.brick_bone, p[0], p[1], p[2], *h, *c,
+                               engine.params.radius_mm, r_in2, r_out2, cache, *o,
+                               engine._stamp)[0]
+            if vert[j, k, 0] == 0.0 and frac != 0.0:
+                continue  # an unneeded corner (no facing element): not sampled at all
+            in_bone += frac > 0.0
+            assert vert[j, k, 0] == pytest.approx(frac, abs=1e-9)
+    assert in_bone > 50

@@ -536,3 +536,46 @@ def test_stream_survives_the_server_stopping_and_starting_mid_trajectory():
     assert counters["wrong_stream"] == 1 and counters["streams"] == 2
     assert replies_after[0].status & STATUS_STALE
     assert all(r.status & STATUS_CUTTING for r in replies_after[100:])
+
+
+def test_every_valid_form_of_a_pose_gets_the_same_answer_and_oversized_none(server):
+    """Through the real socket (received into the loop's own buffer): a POSE in a valid but
+    non-canonical form (the general decoder's path) is answered as its canonical form is, and
+    an oversized datagram is counted, never answered."""
+    above = (0.0, 0.03, 0.005)  # unity metres: 30 mm above the workpiece, touching nothing
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.settimeout(2.0)
+    sock.connect(server.address)
+    try:
+        def pose(seq: int, stream: int) -> bytes:
+            return encode_pose(Pose(OPEN, seq, 10**9 + 1000 * seq, above, (0.0, 0.0, 0.0, 1.0),
+                                    60_000.0, True, None, 0, stream))
+
+        sock.send(pose(1, 0))
+        notice = decode_server_message(sock.recv(2048))
+        assert isinstance(notice, Notice) and notice.error == NEW_STREAM
+        sock.send(pose(2, notice.stream))  # commits the stream (its first tick is stale)
+        first = decode_server_message(sock.recv(2048))
+        canonical = pose(3, notice.stream)
+        # The version as uint 8 (cc 02), the stream as uint 64: valid, not canonical.
+        fields = msgpack.unpackb(pose(4, notice.stream))
+        assert fields[11] == notice.stream and fields[12] is None
+        variant = (b"\x9d\xcc\x02" + b"".join(msgpack.packb(x) for x in fields[1:11])
+                   + b"\xcf" + notice.stream.to_bytes(8, "big") + b"\xc0")
+        sock.send(canonical)
+        r3 = decode_server_message(sock.recv(2048))
+        sock.send(variant)
+        r4 = decode_server_message(sock.recv(2048))
+        before = server.stats()["counters"]["too_big"]
+        sock.send(canonical[:-1] + bytes(600))
+        deadline = time.monotonic() + 10.0
+        while server.stats()["counters"]["too_big"] == before and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert server.stats()["counters"]["too_big"] == before + 1
+    finally:
+        sock.close()
+    assert isinstance(first, Reply) and first.status & STATUS_STALE
+    assert isinstance(r3, Reply) and isinstance(r4, Reply) and (r3.seq, r4.seq) == (3, 4)
+    same = ("seq", "t_client_us", "t_recv_us", "t_send_us")
+    assert r3._replace(**{k: 0 for k in same}) == r4._replace(**{k: 0 for k in same})
+    assert r4.error == OK and not r4.status & STATUS_STALE

@@ -979,3 +979,105 @@ def test_seq_next_wraps():
     assert seq_next(U32 - 1) == 0
     assert seq_next(0) == 1
     assert seq_next(U32 - 2, 3) == 1
+
+
+# -- the hot loop's compiled packet path (server/hotloop/wire.py) --------------------------------
+def _compiled_decode(datagram: bytes):
+    """(decoded?, pose ints, pose float bits) from wire.decode_pose_into."""
+    from burrforce.server.hotloop import wire
+
+    rx, pose_i, pose_f, _, _ = wire.new_buffers()
+    n = min(len(datagram), len(rx))
+    rx[:n] = list(datagram[:n])
+    ok = wire.decode_pose_into(rx, len(datagram), pose_i, pose_f)
+    return ok, pose_i.tolist(), pose_f.view("u8").tolist()
+
+
+def _reference_arrays(pose: Pose):
+    """What the compiled decoder must produce for ``pose`` (wire.pose_arrays)."""
+    import numpy as np
+
+    from burrforce.server.hotloop import wire
+
+    pose_i = np.zeros(wire.POSE_INTS, np.int64)
+    pose_f = np.zeros(wire.POSE_FLOATS)
+    wire.pose_arrays(pose, pose_i, pose_f)
+    return pose_i.tolist(), pose_f.view("u8").tolist()
+
+
+@given(pose=poses(any_float), key=keys_or_none)
+def test_compiled_decoder_agrees_on_every_canonical_pose(pose, key):
+    """Every POSE the reference encoder writes is the compiled decoder's, bit for bit
+    (NaN, ±inf and -0.0 included), and means what the general decoder says it means."""
+    data = encode_pose(pose, Tagger(key) if key is not None else None)
+    ok, ints, bits = _compiled_decode(data)
+    assert ok
+    assert (ints, bits) == _reference_arrays(decode_pose(data))
+
+
+def _mutated_pose_datagrams():
+    base = encode_pose(Pose(7, 9, 1 << 40, (1.0, -2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 6e4, True,
+                            (0.5, 0.0, -0.5), 1, 0xC0FFEE), Tagger(KEY))
+    plain = encode_pose(Pose(7, 9, 11, (1.0, -2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 6e4, False))
+    return st.sampled_from([base, plain]).flatmap(lambda data: st.one_of(
+        st.binary(max_size=600),
+        st.tuples(st.integers(0, len(data) - 1), st.integers(0, 255)).map(
+            lambda iv: data[:iv[0]] + bytes([iv[1]]) + data[iv[0] + 1:]),
+        st.tuples(st.integers(0, len(data) - 1), st.integers(0, 7)).map(
+            lambda ib: data[:ib[0]] + bytes([data[ib[0]] ^ (1 << ib[1])]) + data[ib[0] + 1:]),
+        st.integers(0, len(data)).map(lambda n: data[:n]),
+        st.binary(min_size=1, max_size=40).map(lambda extra: data + extra),
+        st.tuples(st.integers(0, len(data)), st.binary(min_size=1, max_size=9)).map(
+            lambda ix: data[:ix[0]] + ix[1] + data[ix[0]:]),
+    ))
+
+
+@given(_mutated_pose_datagrams())
+def test_compiled_decoder_takes_only_what_the_general_decoder_takes(data):
+    """On any bytes, the compiled decoder either declines (the dispatcher then asks the
+    general decoder, so every error code and counter is its) or decodes exactly what the
+    general decoder decodes."""
+    ok, ints, bits = _compiled_decode(data)
+    if ok:
+        assert (ints, bits) == _reference_arrays(decode_pose(data))
+
+
+@given(pose=poses(friendly), tag=tags, data=st.data())
+def test_compiled_decoder_declines_or_agrees_on_non_canonical_forms(pose, tag, data):
+    parts = [*_draw_header(data, POSE, pose), _draw_vec(data, pose.position),
+             _draw_vec(data, pose.orientation), _draw_float(data, pose.rpm),
+             b"\xc3" if pose.spindle_on else b"\xc2",
+             b"\xc0" if pose.velocity is None else _draw_vec(data, pose.velocity),
+             _draw_int(data, pose.flags), _draw_int(data, pose.stream), _draw_tag(data, tag)]
+    datagram = _draw_array(data, parts)
+    assume(len(datagram) <= MAX_REQUEST_BYTES)
+    ok, ints, bits = _compiled_decode(datagram)
+    if ok:
+        assert (ints, bits) == _reference_arrays(decode_pose(datagram))
+
+
+int63 = st.integers(0, (1 << 63) - 1)
+
+
+@given(reply=replies(any_float).flatmap(lambda r: st.builds(
+           r._replace, t_recv_us=int63, t_send_us=int63, bone_version=int63)),
+       key=keys_or_none)
+def test_compiled_encoder_is_byte_identical_to_the_reference(reply, key):
+    """wire.encode_reply_into + the MAC writes exactly encode_reply's bytes (any float64,
+    every integer width the server's fields take)."""
+    import numpy as np
+
+    from burrforce.server.hotloop import wire
+
+    tagger = Tagger(key) if key is not None else None
+    _, _, _, tx, reply_i = wire.new_buffers()
+    reply_f = np.zeros(wire.REPLY_FLOATS)
+    reply_i[:] = (*reply[:7], reply.bone_version)
+    reply_f[:] = [x for name in Reply._fields[7:-1] if name != "bone_version"
+                  for x in (getattr(reply, name) if isinstance(getattr(reply, name), tuple)
+                            else (getattr(reply, name),))]
+    n = wire.encode_reply_into(tx, reply_i, reply_f, tagger is not None)
+    out = memoryview(tx)[:n]
+    if tagger is not None:
+        tagger.sign(out)
+    assert bytes(out) == encode_reply(reply, tagger)

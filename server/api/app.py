@@ -68,20 +68,36 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
 
     @app.get(API_PREFIX + "/health", tags=["system"])
     def health(response: Response) -> dict:
-        """Liveness without a token: is the hot loop running (503 if not, e.g. while it is
-        restarted after a crash), how many sessions, its restarts."""
+        """Liveness without a token: are all hot-loop workers running (503 if one is not,
+        e.g. while it is restarted after a crash), how many sessions, the restarts; per
+        worker (``workers``): pid, UDP endpoint, sessions, state, restarts. ``udp`` is worker
+        0's endpoint; each session's own is in its view."""
         loop = supervisor.public() if supervisor is not None else None
-        alive = plane.hot.is_alive() and (loop is None or loop["state"] == "running")
+        workers = []
+        for index, hot in enumerate(list(plane.workers)):
+            up = hot.is_alive()
+            state = supervisor.states[index] if supervisor is not None else "running"
+            workers.append({
+                "index": index, "pid": hot.pid if up else None,
+                "udp": {"host": hot.address[0], "port": hot.address[1]}
+                if hot.address else None,
+                "sessions": len(plane.worker_sessions(index)),
+                "state": state if up else ("down" if state == "running" else state),
+                "restarts": supervisor.worker_restarts(index) if supervisor is not None else 0,
+            })
+        alive = all(w["state"] == "running" for w in workers)
         if not alive:
             response.status_code = 503
         latest = stats.latest
         status = "ok" if alive else (f"hot loop {loop['state']}" if loop else "hot loop down")
+        if loop is not None and loop["state"] == "running" and not alive:
+            status = "hot loop down"
         return {"status": status, "hot_loop": alive, "supervisor": loop,
                 "version": __version__,
                 "uptime_s": round(time.time() - plane.started_s, 1),
                 "sessions": len(plane.sessions),
-                "udp": {"host": plane.hot.address[0], "port": plane.hot.address[1]}
-                if plane.hot.address else None,
+                "udp": workers[0]["udp"],
+                "workers": workers,
                 "packets_received": latest["counters"]["received"] if latest else None}
 
     reg = registry(stats, getattr(plane, "devices", None))

@@ -13,6 +13,8 @@ TOML (``burrforce serve --config FILE``)::
     data_budget_bytes = "20GiB" # uploads + snapshots + recordings + exports; 0: no limit
     cors_origins = []           # browser origins allowed to call the API (default none)
     max_sessions = 16           # sessions held at once (each keeps its bone in memory)
+    workers = 3                 # hot-loop processes, worker i on udp_port + i (serve's
+                                # default: one per core less one)
 
     [session]                   # the default session serve starts with
     bone = "phantom:temporal"
@@ -78,6 +80,9 @@ class ServeConfig:
             environment also take sizes like ``"20GiB"`` or ``"500M"``.
         cors_origins: browser origins allowed to call the API; empty turns CORS off.
         max_sessions: sessions the server holds at once (each keeps its bone in memory).
+        workers: hot-loop processes; worker i listens on ``udp_port + i``, each session runs
+            on one of them for life. None: one (``burrforce serve`` picks
+            ``hotloop.process.default_workers()``).
         bone, voxel_mm, frame: the default session's bone and engine frame.
         device: the haptic device profile of the default session (``haptics.PROFILE_NAMES``):
             its output is then coupled. None: no device, the raw force.
@@ -96,6 +101,7 @@ class ServeConfig:
     data_budget_bytes: int = 20 << 30
     cors_origins: tuple[str, ...] = ()
     max_sessions: int = 16
+    workers: int | None = None
     bone: str = "phantom:temporal"
     voxel_mm: float | None = None
     frame: str = "si_mm"
@@ -113,6 +119,14 @@ class ServeConfig:
                 or self.max_sessions < 1:
             raise ValueError(f"max_sessions must be a positive integer, got "
                              f"{self.max_sessions!r}")
+        if self.workers is not None:
+            if isinstance(self.workers, bool) or not isinstance(self.workers, int) \
+                    or self.workers < 1:
+                raise ValueError(f"workers must be an integer ≥ 1 (hot-loop processes), got "
+                                 f"{self.workers!r}")
+            if self.udp_port and self.udp_port + self.workers - 1 > 65535:
+                raise ValueError(f"{self.workers} workers need UDP ports {self.udp_port}.."
+                                 f"{self.udp_port + self.workers - 1}: past 65535")
         if not (isinstance(self.upload_max_mb, (int, float)) and
                 math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
             raise ValueError(f"upload_max_mb must be a positive number, got "
@@ -129,13 +143,19 @@ class ServeConfig:
                              "protection)")
 
     @property
+    def worker_count(self) -> int:
+        """How many hot loops to start (``workers``, None: one)."""
+        return 1 if self.workers is None else self.workers
+
+    @property
     def upload_max_bytes(self) -> int:
         return int(self.upload_max_mb * (1 << 20))
 
 
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
-                    "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions"),
+                    "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions",
+                    "workers"),
          "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
                      "no_auth")}
 

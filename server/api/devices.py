@@ -26,7 +26,7 @@ class DeviceAttachments:
         request names a device this machine cannot open: not plugged in, no permission, a
         vendor library or firmware missing)."""
         session = plane.ready(session_id)
-        host, port = plane.hot.address
+        host, port = plane.address(session)
         if host in ("0.0.0.0", "::", ""):
             host = "127.0.0.1" if host != "::" else "::1"
         try:

@@ -78,6 +78,8 @@ def session_record(session: ManagedSession, stream: int | None) -> dict:
         "calibrations": {str(k): v for k, v in session.calibrations.items()},
         "created": session.created_s,
         "next_stream": stream,
+        # Its worker's UDP port is the one its engine streams to: resumed on the same one.
+        "worker": session.worker,
         "bone_generation": (session.bone_info or {}).get("generation"),
     }
 
@@ -271,7 +273,7 @@ def _resume_one(plane: ControlPlane, journal: Journal, folder: Path) -> tuple[in
     session, job = plane.create_session(
         sid, source, Parameters(**record["parameters"]), Features(**record["features"]),
         authenticated=record["key_hex"] is not None, key_hex=record["key_hex"],
-        prepare=prepare)
+        prepare=prepare, worker=record.get("worker"))
     plane.wait(job)
     if session.state != "ready":
         plane.delete_session(sid)

@@ -1,4 +1,4 @@
-"""The control plane's state: sessions as the user configured them, bone loads, the hot loop.
+"""The control plane's state: sessions as the user configured them, bone loads, the hot loops.
 
 The hot loop process owns the live sessions; this side keeps what each session *should* be
 (bone source, parameters, features, materials) and sends only the effective settings to the
@@ -6,6 +6,9 @@ loop: a feature turned off becomes a setting the loop skips (no shaft: a zero-le
 vibration: no vibration parameters). Bones are loaded here, in a worker thread, and handed to
 the loop through shared memory (``bone.shared``), so a 5-second CT load never runs in the
 loop's interpreter, and exports read the bone without asking the loop.
+
+The hot loops are a pool of worker processes (``serve --workers``), each on its own UDP port;
+a new session is placed on the least-loaded worker (``place``) and stays there for life.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import secrets
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -38,7 +41,7 @@ from ..bone.shared import (
 )
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
-from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S
+from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S, start_pool
 from ..model.params import CuttingParams
 from ..model.vibration import VibrationParams
 from .config import ServeConfig
@@ -56,6 +59,9 @@ RUN_DIR_NAME = re.compile(r"burrforce-[a-z0-9_]{8}")
 #: After a restart, stream numbers continue this far past the last one seen (SPEC 5.2): the
 #: streams a loop opened after the last look are never offered again.
 STREAM_JUMP = 1 << 16
+#: Placement compares workers' measured tick work in steps of this, µs of tick per s (1 % of a
+#: core): below it, load is noise (an idle session's stray tick) and session count decides.
+WORK_STEP_US_PER_S = 10_000.0
 
 
 class ApiError(Exception):
@@ -121,6 +127,8 @@ class ManagedSession:
     error: str | None = None
     job_id: str | None = None
     in_loop: bool = False
+    #: The index of the hot-loop worker the session runs on, for life (``ControlPlane.place``).
+    worker: int = 0
     recording: dict | None = None
     #: The first stream number the next hot loop offers (None: a random one).
     next_stream: int | None = None
@@ -173,16 +181,25 @@ def _device(current: DeviceProfile | None, p: Parameters) -> DeviceProfile | Non
 
 
 class ControlPlane:
-    """Sessions, loads and the hot loop behind the REST API. Thread-safe.
+    """Sessions, loads and the hot loops behind the REST API. Thread-safe.
 
     Args:
         config: the server configuration.
-        hot: a started hot loop (the caller owns starting and stopping it).
+        hot: a started hot loop, or the started pool of them (worker i at index i; the caller
+            owns starting and stopping them).
     """
 
-    def __init__(self, config: ServeConfig, hot: HotLoopProcess) -> None:
+    def __init__(self, config: ServeConfig,
+                 hot: HotLoopProcess | Sequence[HotLoopProcess]) -> None:
         self.config = config
-        self.hot = hot
+        #: The hot-loop workers; the supervisor replaces one in place when it restarts it.
+        self.workers: list[HotLoopProcess] = ([hot] if isinstance(hot, HotLoopProcess)
+                                              else list(hot))
+        if not self.workers:
+            raise ValueError("a control plane needs at least one hot loop")
+        #: Per session id, measured tick work, µs per s (``LoopStats.work_us_per_s``); set by
+        #: whoever polls the loops' statistics. None: placement counts sessions only.
+        self.work_us_per_s: Callable[[], dict[int, float]] | None = None
         self.started_s = time.time()
         self.data_dir = Path(config.data_dir).expanduser()
         self.roots = SourceRoots(config.bone_library, self.data_dir / "uploads",
@@ -204,15 +221,58 @@ class ControlPlane:
         #: Local haptic devices driven from sessions (``routes_devices``).
         self.devices = DeviceAttachments()
 
+    # -- workers ------------------------------------------------------------------------------
+    @property
+    def hot(self) -> HotLoopProcess:
+        """Worker 0 (the only one with ``--workers 1``)."""
+        return self.workers[0]
+
+    @hot.setter
+    def hot(self, hot: HotLoopProcess) -> None:
+        self.workers[0] = hot
+
+    def worker(self, session: ManagedSession) -> HotLoopProcess:
+        """The hot loop ``session`` runs on."""
+        return self.workers[session.worker]
+
+    def address(self, session: ManagedSession) -> tuple[str, int] | None:
+        """The UDP endpoint of ``session``'s worker (None before it first started)."""
+        return self.workers[session.worker].address
+
+    def place(self) -> int:
+        """The worker a new session goes to: of the running ones (a dead worker's last
+        statistics would make it look idle), the least measured tick work of its sessions
+        (``WORK_STEP_US_PER_S`` steps), then the fewest sessions, then the lowest index.
+        Call with ``_lock`` held (the sessions must not change meanwhile)."""
+        n = len(self.workers)
+        if n == 1:
+            return 0
+        alive = [i for i in range(n) if self.workers[i].is_alive()] or list(range(n))
+        measured = self.work_us_per_s() if self.work_us_per_s is not None else {}
+        work = [0.0] * n
+        count = [0] * n
+        for s in self.sessions.values():
+            if 0 <= s.worker < n:
+                count[s.worker] += 1
+                work[s.worker] += measured.get(s.id, 0.0)
+        return min(alive, key=lambda i: (int(work[i] // WORK_STEP_US_PER_S), count[i], i))
+
+    def worker_sessions(self, index: int) -> list[int]:
+        """The ids of the sessions placed on worker ``index``."""
+        with self._lock:
+            return sorted(s.id for s in self.sessions.values() if s.worker == index)
+
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, session_id: int | None, bone: BoneSource, params: Parameters,
                        features: Features, authenticated: bool = True,
                        key_hex: str | None = None,
-                       prepare: Callable[[ManagedSession], None] | None = None
-                       ) -> tuple[ManagedSession, Job]:
+                       prepare: Callable[[ManagedSession], None] | None = None,
+                       worker: int | None = None) -> tuple[ManagedSession, Job]:
         """Register a session and start loading its bone (``Job``). The session reaches the
         hot loop when the load finishes. ``prepare`` sets what a resumed session had
-        (material changes, its carving) before the load starts."""
+        (material changes, its carving) before the load starts; ``worker`` is the one it
+        ran on (its engine streams to that port), kept if the pool still has it, else the
+        session is placed (``place``)."""
         base = ManagedSession(0, None, bone, CuttingParams(), ShaftParams(), VibrationParams(),
                               SessionConfig(), features)
         self._apply_parameters(base, params, check_bone=False)
@@ -231,6 +291,8 @@ class ControlPlane:
                 key_hex = new_key().hex()
             base.id = session_id
             base.key_hex = key_hex if authenticated else None
+            base.worker = (worker if worker is not None and 0 <= worker < len(self.workers)
+                           else self.place())
             self.sessions[session_id] = base
             job = self._submit(base, "create", bone)
         return base, job
@@ -267,7 +329,8 @@ class ControlPlane:
             try:
                 if session.in_loop:
                     session.in_loop = False
-                    self.call("remove_session", session_id=session_id)
+                    self.call("remove_session", worker=session.worker,
+                              session_id=session_id)
             except ApiError as exc:  # a dead loop has no session left to remove
                 log.warning("removing session %s from the hot loop: %s", session_id,
                             exc.detail)
@@ -415,8 +478,10 @@ class ControlPlane:
                            next_stream=session.next_stream)
 
     # -- a restarted hot loop -----------------------------------------------------------------
-    def rebuild(self, hot: HotLoopProcess, streams: dict[int, int] | None = None) -> list[str]:
-        """Move every session the old loop ran into ``hot`` (a new, running loop): same id,
+    def rebuild(self, hot: HotLoopProcess, streams: dict[int, int] | None = None,
+                worker: int = 0) -> list[str]:
+        """Make ``hot`` (a new, running loop) worker ``worker`` and move every session the
+        old one ran into it (the other workers' sessions are not touched): same id,
         key, parameters and materials, and the carved bone itself: the new loop maps the
         same memory again, through the descriptor kept since the load.
 
@@ -426,9 +491,11 @@ class ControlPlane:
 
         Returns a line for each thing the crash ended (a recording, a session that could not
         be rebuilt)."""
-        self.hot = hot
+        self.workers[worker] = hot
         notes = []
         for session in list(self.sessions.values()):
+            if session.worker != worker:
+                continue
             with session.lock:
                 if not session.in_loop or session.bone_fd is None or session.ref is None:
                     continue
@@ -646,14 +713,21 @@ class ControlPlane:
             self.call("configure", session_id=session.id, config=config)
             sent["config"] = config
 
-    def call(self, command: str, **kwargs: object) -> object:
+    def call(self, command: str, worker: int | None = None, **kwargs: object) -> object:
         """A hot-loop command, its failures as API errors: the loop's ValueError → 422, a
-        missing session → 404, a dead loop or anything else → 503."""
+        missing session → 404, a dead loop or anything else → 503. It goes to ``worker``,
+        default the worker of the session it names (``session_id`` or ``spec``)."""
+        if worker is None:
+            spec = kwargs.get("spec")
+            sid = kwargs.get("session_id", getattr(spec, "session_id", None))
+            with self._lock:
+                session = self.sessions.get(sid)  # type: ignore[arg-type]
+            worker = session.worker if session is not None else 0
         # Adding a session maps and warms its bone (a first start may compile kernels).
         timeout_s = (START_TIMEOUT_S if command in ("add_session", "replace_session")
                      else CALL_TIMEOUT_S)
         try:
-            return self.hot.call(command, timeout_s=timeout_s, **kwargs)
+            return self.workers[worker].call(command, timeout_s=timeout_s, **kwargs)
         except RuntimeError as exc:
             text = str(exc)
             if "ValueError" in text or "BoneFileError" in text:
@@ -748,7 +822,7 @@ class ControlPlane:
         info = session.recording
         session.recording = None
         try:
-            status = self.hot.call("stop_recording", session_id=session.id)
+            status = self.worker(session).call("stop_recording", session_id=session.id)
         except RuntimeError as exc:
             status = {"error": str(exc)}
         return {**info, **(status or {})}
@@ -893,3 +967,9 @@ def start_hot_loop(config: ServeConfig) -> HotLoopProcess:
     hot = HotLoopProcess(HotLoopConfig(config.host, config.udp_port, ()))
     hot.start()
     return hot
+
+
+def start_hot_loops(config: ServeConfig) -> list[HotLoopProcess]:
+    """``config.worker_count`` hot loops with no sessions yet, worker i on ``udp_port + i``
+    (``hotloop.process.start_pool``)."""
+    return start_pool(config.host, config.udp_port, config.worker_count)

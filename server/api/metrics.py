@@ -1,14 +1,17 @@
-"""Prometheus metrics from the hot loop's statistics.
+"""Prometheus metrics from the hot loops' statistics.
 
-A poller thread asks the loop for its counters twice a second (the loop copies them between two
-packets; quantiles and histograms are computed here) and keeps cumulative histograms of the
-model-stage time from the ticks that happened since the last poll.
+A poller thread asks the loops for their counters twice a second (a loop copies them between
+two packets; quantiles and histograms are computed here) and keeps cumulative histograms of the
+model-stage time from the ticks that happened since the last poll. With a pool of workers
+(``serve --workers``) ``PoolStats`` merges theirs: counters summed, sessions side by side, and
+each worker's own under ``workers`` (``burrforce_worker_*`` metrics, label ``worker``).
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from prometheus_client import CollectorRegistry
@@ -49,6 +52,10 @@ class LoopStats:
         self._seen: dict[int, tuple[int, int]] = {}
         self.ticks_lost = 0
         self.poll_errors = 0
+        #: Per session: (monotonic s, histogram sum µs) at the last poll, and the tick work
+        #: between the last two polls, µs per s.
+        self._work_mark: dict[int, tuple[float, float]] = {}
+        self._work: dict[int, float] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -56,12 +63,17 @@ class LoopStats:
         with self._lock:
             since = dict(self._seen)
         stats = self._fetch(since)
+        now_s = time.monotonic()
         with self._lock:
             live = set(stats["sessions"])
             for sid in list(self.histograms):
                 if sid not in live:
                     del self.histograms[sid]
                     self._seen.pop(sid, None)
+            for sid in list(self._work_mark):
+                if sid not in live:
+                    del self._work_mark[sid]
+                    self._work.pop(sid, None)
             for sid, s in stats["sessions"].items():
                 epoch, timed = s["tick_epoch"], int(s["ticks_timed"])
                 seen_epoch, seen = self._seen.get(sid, (0, 0))
@@ -74,6 +86,10 @@ class LoopStats:
                     hist.add(np.asarray(new))
                     self.ticks_lost += max(0, timed - seen - len(new))
                 self._seen[sid] = (epoch, timed)
+                mark = self._work_mark.get(sid)
+                if mark is not None and now_s > mark[0]:
+                    self._work[sid] = max(0.0, hist.sum_us - mark[1]) / (now_s - mark[0])
+                self._work_mark[sid] = (now_s, hist.sum_us)
             self.latest = stats
         return stats
 
@@ -84,12 +100,22 @@ class LoopStats:
         return {sid: int(s["next_stream"]) for sid, s in latest.get("sessions", {}).items()
                 if s.get("next_stream")}
 
-    def forget_sessions(self) -> None:
+    def work_us_per_s(self) -> dict[int, float]:
+        """Per session, the measured tick work between the last two polls, µs of model stage
+        per s (what placing a new session on the least-loaded worker compares)."""
+        with self._lock:
+            return dict(self._work)
+
+    def forget_sessions(self, session_ids: Sequence[int] | None = None) -> None:
         """Drop the per-session statistics of a loop that was replaced (the next poll brings
-        the new one's); the counters stay until then."""
+        the new one's): all of them, or those of ``session_ids`` (a pool's worker); the
+        counters stay until then."""
         with self._lock:
             if self.latest is not None:
-                self.latest = {**self.latest, "sessions": {}}
+                sessions = ({} if session_ids is None else
+                            {sid: s for sid, s in self.latest["sessions"].items()
+                             if sid not in set(session_ids)})
+                self.latest = {**self.latest, "sessions": sessions}
 
     def start(self) -> None:
         def run() -> None:
@@ -156,6 +182,78 @@ class LoopStats:
         up = GaugeMetricFamily("burrforce_sessions", "Sessions in the hot loop")
         up.add_metric([], len(sessions))
         yield up
+        workers = stats.get("workers")
+        if workers:
+            per = CounterMetricFamily("burrforce_worker_packets", "Datagrams by outcome, per "
+                                      "hot-loop worker", labels=["worker", "outcome"])
+            held = GaugeMetricFamily("burrforce_worker_sessions", "Sessions in each hot-loop "
+                                     "worker", labels=["worker"])
+            for w in workers:
+                label = str(w["index"])
+                for name, value in w["counters"].items():
+                    per.add_metric([label, name], value)
+                held.add_metric([label], len(w["sessions"]))
+            yield from (per, held)
+
+
+class PoolStats:
+    """The ``fetch`` of a ``LoopStats`` over a pool of hot loops: every worker's statistics,
+    merged. Counters are summed, sessions (ids are unique across the pool) put side by side,
+    and ``workers`` lists each one's (``index``, ``counters``, ``sessions``: its ids, ``up``:
+    whether it answered this time). A worker that does not answer (dead, restarting) keeps
+    its last answer, so what the supervisor reads of its sessions (their stream numbers)
+    survives the crash; if none answers, the poll fails as with a single loop.
+
+    Args:
+        workers: returns the current workers (the supervisor replaces them).
+    """
+
+    def __init__(self, workers: Callable[[], Sequence]) -> None:
+        self._workers = workers
+        self._last: dict[int, dict] = {}
+        #: Per worker, the process that gave the last answer and what the processes before
+        #: it counted: a restarted worker counts from zero, and the pool's sums must not go
+        #: back (Prometheus would read a drop as a reset of the whole pool's counters).
+        self._hot: dict[int, object] = {}
+        self._base: dict[int, dict[str, int]] = {}
+
+    def __call__(self, since: dict[int, tuple[int, int]]) -> dict:
+        answers: list[tuple[int, dict, bool]] = []
+        error: Exception | None = None
+        for i, hot in enumerate(self._workers()):
+            try:
+                answer = hot.call("stats", tick_times_since=since)
+            except RuntimeError as exc:
+                error = exc
+                last = self._last.get(i)
+                if last is not None:
+                    answers.append((i, last, False))
+                continue
+            if i in self._hot and self._hot[i] is not hot and i in self._last:
+                base = self._base.setdefault(i, {})
+                for name, value in self._last[i]["counters"].items():
+                    base[name] = base.get(name, 0) + value
+            self._hot[i] = hot
+            self._last[i] = answer
+            answers.append((i, answer, True))
+        if not any(up for _, _, up in answers):
+            raise error if error is not None else RuntimeError("no hot loop")
+        counters: dict[str, int] = {}
+        sessions: dict[int, dict] = {}
+        workers = []
+        for i, answer, up in answers:
+            base = self._base.get(i, {})
+            for name, value in answer["counters"].items():
+                counters[name] = counters.get(name, 0) + value + base.get(name, 0)
+            for sid, s in answer["sessions"].items():
+                if up:
+                    sessions[sid] = s
+                else:  # its tick times were counted when it last answered
+                    sessions[sid] = {k: v for k, v in s.items() if k != "new_tick_times_us"}
+            workers.append({"index": i, "counters": dict(answer["counters"]),
+                            "sessions": sorted(answer["sessions"]), "up": up})
+        return {"counters": counters, "time_ns": time.monotonic_ns(), "sessions": sessions,
+                "workers": workers}
 
 
 class DeviceCollector:

@@ -33,13 +33,14 @@ def _plane(request: Request) -> ControlPlane:
 
 
 def session_view(plane: ControlPlane, s: ManagedSession, key: bool = False) -> dict:
-    host, port = plane.hot.address or ("", 0)
+    host, port = plane.address(s) or ("", 0)
     view = {
         "id": s.id,
         "state": s.state,
         "error": s.error,
         "job": s.job_id,
         "udp": {"host": host, "port": port},
+        "worker": s.worker,
         "authenticated": s.key_hex is not None,
         "source": s.source.source,
         "bone": s.bone_info,

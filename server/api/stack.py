@@ -1,4 +1,4 @@
-"""The whole server in one object: hot loop, control plane, statistics, uvicorn.
+"""The whole server in one object: hot loops, control plane, statistics, uvicorn.
 
 ``burrforce serve`` runs it in the foreground; tests and Python harnesses embed it::
 
@@ -19,8 +19,8 @@ from ..hotloop import HotLoopProcess
 from .app import create_app
 from .config import ServeConfig
 from .journal import Journal, resume
-from .manager import ControlPlane, ManagedSession, start_hot_loop
-from .metrics import LoopStats
+from .manager import ControlPlane, ManagedSession, start_hot_loops
+from .metrics import LoopStats, PoolStats
 from .models import Features, Parameters
 from .sources import BoneSource
 from .supervisor import Supervisor
@@ -30,10 +30,11 @@ log = logging.getLogger("burrforce.api")
 
 
 class ServerStack:
-    """Hot loop + control plane + REST app (+ an optional default session).
+    """Hot loops + control plane + REST app (+ an optional default session).
 
     Args:
-        config: server configuration (``http_port=0``/``udp_port=0`` pick free ports).
+        config: server configuration (``http_port=0``/``udp_port=0`` pick free ports;
+            ``workers``: how many hot loops, default one).
         token: the REST bearer token.
     """
 
@@ -53,18 +54,27 @@ class ServerStack:
         self._thread: threading.Thread | None = None
 
     def start_backend(self) -> None:
-        """The hot loop, the control plane, the statistics poller, the supervisor and the
-        journal, after resuming the journaled sessions (no HTTP yet)."""
-        hot = start_hot_loop(self.config)
+        """The hot loops, the control plane, the statistics poller, the supervisor and the
+        journal, after resuming the journaled sessions (no HTTP yet).
+
+        Raises:
+            RuntimeError: a worker's UDP port is taken, or a worker failed to start.
+        """
+        workers = start_hot_loops(self.config)
         try:
-            self.plane = plane = ControlPlane(self.config, hot)
+            self.plane = plane = ControlPlane(self.config, workers)
         except BaseException:
-            hot.stop()
+            for hot in workers:
+                hot.stop()
             raise
         try:
-            # Through the plane: the supervisor replaces its loop after a crash.
-            self.stats = LoopStats(lambda since: plane.hot.call("stats",
-                                                                tick_times_since=since))
+            # Through the plane: the supervisor replaces a worker after a crash.
+            if len(workers) == 1:
+                self.stats = LoopStats(lambda since: plane.hot.call("stats",
+                                                                    tick_times_since=since))
+            else:
+                self.stats = LoopStats(PoolStats(lambda: plane.workers))
+            plane.work_us_per_s = self.stats.work_us_per_s
             self.stats.poll()
             self.stats.start()
             self.supervisor = Supervisor(plane, self.stats, self.say)
@@ -126,11 +136,17 @@ class ServerStack:
 
     @property
     def hot(self) -> HotLoopProcess | None:
-        """The running hot loop (a new one after a restart)."""
+        """The running hot loop of worker 0 (a new one after a restart)."""
         return self.plane.hot if self.plane is not None else None
 
     @property
+    def workers(self) -> list[HotLoopProcess]:
+        """The running hot loops, worker i at index i."""
+        return list(self.plane.workers) if self.plane is not None else []
+
+    @property
     def udp_address(self) -> tuple[str, int]:
+        """Worker 0's UDP endpoint (a session's own: ``plane.address(session)``)."""
         assert self.hot is not None and self.hot.address is not None
         return self.hot.address
 
@@ -149,7 +165,8 @@ class ServerStack:
             self.stats.stop()
         if self.plane is not None:
             self.plane.close()
-            self.plane.hot.stop()
+            for hot in self.plane.workers:
+                hot.stop()
 
     def __enter__(self) -> ServerStack:
         if self.plane is None:

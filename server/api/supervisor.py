@@ -1,4 +1,4 @@
-"""Keeps the hot loop alive: a dead or wedged loop is reported, replaced and refilled.
+"""Keeps the hot loops alive: a dead or wedged loop is reported, replaced and refilled.
 
 The hot loop is a process of its own (``hotloop.process``); it can be killed (OOM killer,
 ``kill -9``, a crash in native code) or wedge (a tick that never ends). The supervisor watches
@@ -6,6 +6,10 @@ its exit status and its heartbeat; when either fails it says so (console, log, h
 metrics), kills what is left, starts a new loop on the same UDP port and puts every session
 back with its id, key, parameters and carved bone (``ControlPlane.rebuild``). Engines see
 their stream refused once (WRONG_STREAM), say hello again and go on with the same key.
+
+With a pool (``serve --workers``) each worker is watched and replaced on its own: a crash of
+worker 2 rebuilds worker 2's sessions on worker 2's port and touches no other. One warm spare
+serves the whole pool (it is re-warmed after use).
 
 If a new loop cannot be started ``MAX_FAILED_STARTS`` times in a row, the supervisor gives
 up and asks the server to exit with an error, so a process manager (docker's restart
@@ -51,21 +55,24 @@ class Restart:
 
     reason: str
     at_s: float
+    #: The index of the worker that was replaced.
+    worker: int = 0
     sessions: int = 0
     recovery_s: float | None = None
     notes: tuple[str, ...] = ()
 
     def public(self) -> dict:
-        return {"reason": self.reason, "at": self.at_s, "sessions": self.sessions,
+        return {"reason": self.reason, "at": self.at_s, "worker": self.worker,
+                "sessions": self.sessions,
                 "recovery_s": None if self.recovery_s is None else round(self.recovery_s, 3),
                 "notes": list(self.notes)}
 
 
 class Supervisor:
-    """Watches ``plane.hot`` from a thread and replaces it when it dies or wedges.
+    """Watches ``plane.workers`` from a thread and replaces one when it dies or wedges.
 
     Args:
-        plane: the control plane (its ``hot`` is replaced on a restart).
+        plane: the control plane (a worker of its ``workers`` is replaced on a restart).
         stats: the statistics poller (it knows each session's last stream number).
         say: where console lines go (``burrforce serve`` prints them), besides the log.
         give_up: called once when the loop cannot be restarted (default: SIGTERM to this
@@ -79,8 +86,8 @@ class Supervisor:
         self.stats = stats
         self.say = say
         self.give_up = give_up or _terminate_self
-        #: "running", "restarting" or "lost" (gave up).
-        self.state = "running"
+        #: Per worker: "running", "restarting" or "lost" (gave up).
+        self.states = ["running"] * len(plane.workers)
         self.restarts: list[Restart] = []
         self.failed_starts = 0
         #: A warm, unstarted loop that replaces a crashed one (``spawn_spare``).
@@ -88,6 +95,19 @@ class Supervisor:
         self._spare_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+
+    @property
+    def state(self) -> str:
+        """The pool's: "lost" if a worker is, else "restarting" if one is, else
+        "running"."""
+        for state in ("lost", "restarting"):
+            if state in self.states:
+                return state
+        return "running"
+
+    def worker_restarts(self, index: int) -> int:
+        """How many times worker ``index`` was replaced."""
+        return sum(r.worker == index for r in self.restarts)
 
     # -- lifetime ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -106,14 +126,12 @@ class Supervisor:
             spare.stop()
 
     def _keep_spare(self, delay_s: float = 0.0) -> None:
-        """Warm a spare loop in the background (for the same address as the running one),
-        after ``delay_s``."""
+        """Warm a spare loop in the background, after ``delay_s``. Its address is set when
+        it takes a worker's place (``_take_spare``): one spare serves every worker."""
         def warm() -> None:
             if self._stop.wait(delay_s):
                 return
-            hot = self.plane.hot
-            spare = HotLoopProcess(HotLoopConfig(*(hot.address or (hot.config.host,
-                                                                   hot.config.udp_port))))
+            spare = HotLoopProcess(HotLoopConfig(self.plane.hot.config.host, 0, ()))
             try:
                 spare.spawn_spare()
             except RuntimeError as exc:
@@ -130,14 +148,17 @@ class Supervisor:
     def _take_spare(self, address: tuple[str, int]) -> HotLoopProcess:
         with self._spare_lock:
             spare, self.spare = self.spare, None
-        if spare is not None and spare.is_alive() and spare.config.udp_port == address[1]:
+        if spare is not None and spare.is_alive() and spare.spare:
+            # A spare reads its configuration only when started: it can take any port.
+            spare.config = HotLoopConfig(address[0], address[1], ())
             return spare
         if spare is not None:
             spare.stop()
         return HotLoopProcess(HotLoopConfig(address[0], address[1], ()))
 
     def public(self) -> dict:
-        """For /v1/health: the loop's state and its restarts."""
+        """For /v1/health: the pool's state, worker 0's pid, and the restarts (of every
+        worker; ``last_restart.worker`` says whose)."""
         last = self.restarts[-1].public() if self.restarts else None
         hot = self.plane.hot
         return {"state": self.state, "pid": hot.pid if hot.is_alive() else None,
@@ -147,13 +168,16 @@ class Supervisor:
     def _run(self) -> None:
         self._keep_spare()
         while not self._stop.wait(CHECK_INTERVAL_S):
-            reason = self.check()
-            if reason is not None:
-                self.restart(reason)
+            for index in range(len(self.plane.workers)):
+                if self.states[index] == "lost":
+                    continue
+                reason = self.check(index)
+                if reason is not None:
+                    self.restart(reason, index)
 
-    def check(self) -> str | None:
-        """Why the loop needs replacing now, or None while it is fine."""
-        hot = self.plane.hot
+    def check(self, index: int = 0) -> str | None:
+        """Why worker ``index`` needs replacing now, or None while it is fine."""
+        hot = self.plane.workers[index]
         if hot.wedged is not None:
             return f"not answering: {hot.wedged}"
         if not hot.is_alive():
@@ -163,18 +187,20 @@ class Supervisor:
             return f"no heartbeat for {age:.1f} s (a tick that does not end)"
         return None
 
-    def restart(self, reason: str) -> bool:
-        """Replace the loop; True once sessions are back. Gives up (``give_up``) after
-        ``MAX_FAILED_STARTS`` failed starts in a row."""
+    def restart(self, reason: str, index: int = 0) -> bool:
+        """Replace worker ``index``; True once its sessions are back. Gives up
+        (``give_up``) after ``MAX_FAILED_STARTS`` failed starts in a row."""
         plane = self.plane
-        old = plane.hot
-        record = Restart(reason, time.time())
-        self.state = "restarting"  # before the record: a watcher sees both or neither
+        old = plane.workers[index]
+        record = Restart(reason, time.time(), index)
+        self.states[index] = "restarting"  # before the record: a watcher sees both or neither
         self.restarts.append(record)
         t0 = time.monotonic()
-        self._tell(f"HOT LOOP {reason}: restarting it and its "
-                   f"{sum(s.in_loop for s in plane.sessions.values())} session(s)",
-                   logging.ERROR)
+        name = "HOT LOOP" if len(plane.workers) == 1 else f"HOT LOOP worker {index}"
+        mine = set(plane.worker_sessions(index))
+        self._tell(f"{name} {reason}: restarting it and its "
+                   f"{sum(s.in_loop for s in plane.sessions.values() if s.id in mine)} "
+                   "session(s)", logging.ERROR)
         streams = self.stats.next_streams()
         address = old.address or (old.config.host, old.config.udp_port)
         old.kill()
@@ -185,10 +211,10 @@ class Supervisor:
                 new.start()
             except RuntimeError as exc:
                 self.failed_starts += 1
-                self._tell(f"hot loop restart {self.failed_starts}/{MAX_FAILED_STARTS} "
-                           f"failed: {exc}", logging.ERROR)
+                self._tell(f"{name.lower()} restart {self.failed_starts}/"
+                           f"{MAX_FAILED_STARTS} failed: {exc}", logging.ERROR)
                 if self.failed_starts >= MAX_FAILED_STARTS:
-                    self.state = "lost"
+                    self.states[index] = "lost"
                     self._tell("giving up: the server stops so that its process manager "
                                "restarts it", logging.CRITICAL)
                     self.give_up()
@@ -197,15 +223,18 @@ class Supervisor:
                 delay *= 2
                 continue
             self.failed_starts = 0
-            record.notes = tuple(plane.rebuild(new, streams))
-            self.stats.forget_sessions()  # numbers from the old loop are not the new one's
-            record.sessions = sum(s.in_loop for s in plane.sessions.values())
+            record.notes = tuple(plane.rebuild(new, streams, index))
+            # Numbers from the old loop are not the new one's.
+            mine = plane.worker_sessions(index)
+            self.stats.forget_sessions(mine if len(plane.workers) > 1 else None)
+            record.sessions = sum(s.in_loop for s in plane.sessions.values()
+                                  if s.id in set(mine))
             record.recovery_s = time.monotonic() - t0
-            self.state = "running"
+            self.states[index] = "running"
             # Not at once: warming a spare is a second of both cores, which the sessions
             # just back need more (measured: p99 95 ms after a restart with it at once).
             self._keep_spare(SPARE_DELAY_S)
-            self._tell(f"hot loop back in {record.recovery_s:.2f} s with "
+            self._tell(f"{name.lower()} back in {record.recovery_s:.2f} s with "
                        f"{record.sessions} session(s) (restart {len(self.restarts)})"
                        + "".join(f"; {n}" for n in record.notes), logging.WARNING)
             return True
@@ -225,6 +254,15 @@ class Supervisor:
         up = GaugeMetricFamily("burrforce_hotloop_up", "1 while the hot loop runs")
         up.add_metric([], 1.0 if self.state == "running" else 0.0)
         yield from (restarts, up)
+        per_restarts = CounterMetricFamily("burrforce_worker_restarts", "Times each hot-loop "
+                                           "worker died or wedged and was replaced",
+                                           labels=["worker"])
+        per_up = GaugeMetricFamily("burrforce_worker_up", "1 while the hot-loop worker runs",
+                                   labels=["worker"])
+        for index, state in enumerate(self.states):
+            per_restarts.add_metric([str(index)], self.worker_restarts(index))
+            per_up.add_metric([str(index)], 1.0 if state == "running" else 0.0)
+        yield from (per_restarts, per_up)
         if self.restarts and self.restarts[-1].recovery_s is not None:
             recovery = GaugeMetricFamily("burrforce_hotloop_last_recovery_seconds",
                                          "From noticing the last failure to sessions back")

@@ -44,17 +44,19 @@ class ServeProcess:
         return self.proc.returncode, out
 
 
-def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0) -> ServeProcess:
+def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0,
+                env: dict[str, str] | None = None) -> ServeProcess:
     """Start ``burrforce serve --udp-port 0 --http-port 0 --data-dir FOLDER/data
     --connection-file FOLDER/connection.json ARGS…`` and wait until it is ready (a cold numba
-    cache compiles the kernels first). ``BURRFORCE_TOKEN`` is not passed on.
+    cache compiles the kernels first). ``BURRFORCE_TOKEN`` is not passed on; ``env`` is set
+    over this process's environment.
 
     Raises:
         RuntimeError: it exited or did not get ready in ``timeout_s``; the message holds what
             it printed.
     """
     conn = folder / "connection.json"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     env.pop("BURRFORCE_TOKEN", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",

@@ -22,6 +22,9 @@ from .voxels import cache_origin, sample_bone, sphere_reach
 #: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
 #: the groove the burr is ploughing) by a few per cent, where the corner mean is exact enough.
 SMOOTH_SPREAD = 0.25
+#: Corner markers between the two sampling levels (real fractions are in [0, 1]).
+PENDING = -1.0
+UNNEEDED = -2.0
 
 
 @njit(cache=True, nogil=True)
@@ -68,40 +71,83 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     n_phi = cos_p.shape[0]
     m = cos_sub_t.shape[0]
     m2 = float(m * m)
-    # Pass 1: sample the bone once at every element corner that an evaluated element needs.
+    # Pass 1: sample the bone once at every element corner that an evaluated element needs,
+    # in two levels: first the corners with even (j, k) (and the last ring), then the others
+    # only where their coarse neighbours differ. Bone (or air) that is uniform over a coarse
+    # cell, most of the burr in a cut, costs a quarter of the samples. Until pass 1c a corner
+    # holds PENDING or UNNEEDED in channel 0, and channel 2 of element rows the facing flags.
+    if not sample_all:
+        for j in range(n_theta):
+            st = sin_t[j]
+            ct3 = cos_t[j] * v3
+            for k in range(n_phi):
+                facing = st * (v1 * cos_p[k] + v2 * sin_p[k]) + ct3 > 0.0
+                vert[j, k, 2] = 1.0 if facing else 0.0
     for j in range(n_theta + 1):
-        st = sin_tv[j]
-        ct = cos_tv[j]
+        ja = max(j - 1, 0)
+        jb = min(j, n_theta - 1)
+        for k in range(n_phi):
+            # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
+            km = k - 1 if k > 0 else n_phi - 1
+            needed = sample_all or (vert[ja, km, 2] + vert[ja, k, 2] + vert[jb, km, 2]
+                                    + vert[jb, k, 2]) > 0.0
+            vert[j, k, 0] = PENDING if needed else UNNEEDED
+    for j in range(n_theta + 1):
         pole = j == 0 or j == n_theta
+        if not (pole or (j & 1) == 0):
+            continue
         for k in range(n_phi):
             if pole and k > 0:
                 for q in range(3):
                     vert[j, k, q] = vert[j, 0, q]
                 continue
-            needed = sample_all
-            if not needed:
-                # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
-                km = k - 1 if k > 0 else n_phi - 1
-                for jj in range(max(j - 1, 0), min(j, n_theta - 1) + 1):
-                    for kk in (km, k):
-                        if sin_t[jj] * (v1 * cos_p[kk] + v2 * sin_p[kk]) + cos_t[jj] * v3 > 0.0:
-                            needed = True
-            if not needed:
+            if (k & 1) == 1 and not pole:
+                continue
+            if vert[j, k, 0] == PENDING:
+                _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
+                               swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius,
+                               e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2,
+                               r_out2, cache, o0, o1, o2, tick)
+    # Pass 1b: the fine corners. Pass 1c: the unneeded ones read as no bone.
+    for j in range(n_theta + 1):
+        jm = j - 1 if (j & 1) == 1 and j < n_theta else j
+        jp = j + 1 if (j & 1) == 1 and j < n_theta else j
+        for k in range(n_phi):
+            if vert[j, k, 0] != PENDING:
+                continue
+            if (k & 1) == 1:
+                km = k - 1
+                kp = k + 1 if k + 1 < n_phi else 0
+            else:
+                km = k
+                kp = k
+            # Bone uniform over the coarse cell (all of its corners sampled and identical):
+            # so is this corner. Air is sampled all the same: bone a coarse cell's corners
+            # miss can reach the stencil between them, and air samples are cheap.
+            g = vert[jm, km, 0]
+            uniform = (g > 0.0 and vert[jm, kp, 0] == g and vert[jp, km, 0] == g
+                       and vert[jp, kp, 0] == g)
+            if uniform:
+                u = vert[jm, km, 1]
+                w = vert[jm, km, 2]
+                uniform = (vert[jm, kp, 1] == u and vert[jp, km, 1] == u and vert[jp, kp, 1] == u
+                           and vert[jm, kp, 2] == w and vert[jp, km, 2] == w
+                           and vert[jp, kp, 2] == w)
+            if uniform:
+                vert[j, k, 0] = g
+                vert[j, k, 1] = vert[jm, km, 1]
+                vert[j, k, 2] = vert[jm, km, 2]
+                continue
+            _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
+                           swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius, e1x,
+                           e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2, r_out2,
+                           cache, o0, o1, o2, tick)
+    for j in range(n_theta + 1):
+        for k in range(n_phi):
+            if vert[j, k, 0] == UNNEEDED:
                 vert[j, k, 0] = 0.0
                 vert[j, k, 1] = 0.0
                 vert[j, k, 2] = 0.0
-                continue
-            n1 = st * cos_pv[k]
-            n2 = st * sin_pv[k]
-            px = cx + radius * (n1 * e1x + n2 * e2x + ct * e3x)
-            py = cy + radius * (n1 * e1y + n2 * e2y + ct * e3y)
-            pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
-            frac, us_f, usk_f, _, _, _ = sample_bone(
-                density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick)
-            vert[j, k, 0] = frac
-            vert[j, k, 1] = us_f
-            vert[j, k, 2] = usk_f
     # Outward surface normal: from the density gradient where the bone's surface crosses the
     # burr; failing that, against the mean normal of the elements in bone.
     gsx = 0.0
@@ -201,3 +247,21 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             acc[13] = -wy / w_norm
             acc[14] = -wz / w_norm
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
+
+
+@njit(cache=True, nogil=True)
+def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
+                   brick_bone, cx, cy, cz, radius, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z,
+                   hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick):
+    """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``."""
+    n1 = st * cpv
+    n2 = st * spv
+    px = cx + radius * (n1 * e1x + n2 * e2x + ct * e3x)
+    py = cy + radius * (n1 * e1y + n2 * e2y + ct * e3y)
+    pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
+    frac, us_f, usk_f, _, _, _ = sample_bone(
+        density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
+        cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick)
+    vert[j, k, 0] = frac
+    vert[j, k, 1] = us_f
+    vert[j, k, 2] = usk_f

@@ -1,4 +1,9 @@
-"""One tick of the bone stage, fused: carve, cutting force, shaft contact — one numba call."""
+"""One tick of the bone stage, fused: carve, cutting force, shaft contact — one numba call.
+
+numba keys the cached ``bone_tick`` on this file only, not on the kernels it calls; the
+``burrforce`` command and the tests keep the cache in a directory per digest of the server's
+sources (``compile_cache``), so an edit to carve.py or voxels.py never runs a stale tick.
+"""
 
 from __future__ import annotations
 

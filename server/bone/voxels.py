@@ -26,7 +26,7 @@ def sphere_reach(radius, hx, hy, hz):
     return r_in * r_in, r_out * r_out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def plane_fraction(depth, a, b, c):
     """Share of a voxel whose centre lies ``depth`` mm inside a plane, given the voxel's three
     half-extents projected on the plane's normal: the trapezoid whose half-ranges are the
@@ -42,7 +42,7 @@ def voxel_span(lo_mm, hi_mm, h, n):
     return max(0, math.ceil(lo_mm / h)), min(n - 1, math.floor(hi_mm / h))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
     """Fraction of a voxel inside a sphere, quantized to 0–255.
 
@@ -78,7 +78,7 @@ def cache_origin(cache, cx, cy, cz, hx, hy, hz):
             math.floor(cz / hz) - (cache.shape[2] - 2) // 2)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy, hz, r_in2,
                     r_out2):
     """``sphere_coverage`` of voxel (i, j, k), computed at most once per tick: carving fills
@@ -96,7 +96,7 @@ def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy
     return sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
                 cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick):
     """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
@@ -149,7 +149,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
     """Trilinear original density (×255), its Us and Us·K weighted sums and its gradient (per
     voxel step) for a stencil inside the grid, unrolled: the hot path of every sample."""
@@ -261,7 +261,7 @@ def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz
     return bone, us, usk, gx, gy, gz, swept_any
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2,
                   density, cache, o0, o1, o2, tick):
     """Share of the stencil's bone outside the burr that no other burr position has swept

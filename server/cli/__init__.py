@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from .. import __version__
+from .. import __version__, compile_cache
 from .args import float_at_least, int_in
 
 _positive_float = float_at_least(0.0, inclusive=False)
@@ -142,6 +142,12 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     cli_calibrate.add_parser(sub)
 
 
+def _add_compile(sub: argparse._SubParsersAction) -> None:
+    from . import compile as cli_compile
+
+    cli_compile.add_parser(sub)
+
+
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that write results files")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
@@ -153,8 +159,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     from ..bench import load_while_streaming as bench_load_while_streaming
     from ..bench import mesh as bench_mesh
     from ..bench import model as bench_model
+    from ..bench import sessions as bench_sessions
     from ..bench import soak as bench_soak
     from ..bench import stability as bench_stability
+    from ..bench import startup as bench_startup
 
     bench_model.add_parser(bench_sub)
     bench_accuracy.add_parser(bench_sub)
@@ -166,6 +174,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     bench_mesh.add_parser(bench_sub)
     bench_flood.add_parser(bench_sub)
     bench_soak.add_parser(bench_sub)
+    bench_sessions.add_parser(bench_sub)
+    bench_startup.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -179,6 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_calibrate(sub)
     _add_bone(sub)
     _add_serve(sub)
+    _add_compile(sub)
     _add_client(sub)
     _add_device(sub)
     _add_bench(sub)
@@ -187,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Before any command imports numba: every process of this one loads the same cache.
+    compile_cache.configure()
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -54,3 +54,18 @@ def int_in(low: int, high: int, what: str) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
+    """An integer ≥ minimum; ``what`` names it in the message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{what} must be at least {minimum}, got {value}")
+        return value
+
+    return parse

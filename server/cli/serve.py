@@ -31,7 +31,7 @@ from ..api.config import (
     load_config,
 )
 from ..haptics.profiles import PROFILES
-from .args import float_in, int_in
+from .args import float_in, int_at_least, int_in
 from .device import add_loop_options, loop_config
 
 STATUS_INTERVAL_S = 2.0
@@ -55,6 +55,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help=f"REST port (0: any free one). Default {DEFAULT_HTTP_PORT}")
     p.add_argument("--udp-port", type=int_in(0, 65535, "UDP port"), default=None,
                    help=f"UDP port (0: any free one). Default {DEFAULT_UDP_PORT}")
+    p.add_argument("--workers", type=int_at_least(1, "--workers (hot-loop processes)"),
+                   default=None, metavar="N",
+                   help="hot-loop processes, each on its own core and UDP port: worker i "
+                        "listens on UDP_PORT + i (all must be free; with --udp-port 0 each "
+                        "takes any free one). A new session goes to the least-loaded worker "
+                        "and stays there; its REST view says which (udp, worker). Default: "
+                        "the cores this process may use, less one for the control plane "
+                        "(at least 1)")
     p.add_argument("--bone", default=None,
                    help="the default session's bone: phantom:NAME (workpiece, layered, "
                         "temporal) or a bone file. Default phantom:temporal")
@@ -139,12 +147,24 @@ def resolve_token(config: ServeConfig) -> tuple[str, bool]:
     return token, True
 
 
+def _load_bone_kernels() -> None:
+    """Build a coarse phantom, which loads the phantom, brick-summary and shared-bone kernels
+    the default session's load runs (best effort: the load itself loads what this missed)."""
+    try:
+        from ..bone import phantom
+
+        phantom("temporal", 1.0)
+    except Exception:  # only a head start: the real load reports its own errors
+        pass
+
+
 def main(args: argparse.Namespace) -> int:
     from ..api.models import Parameters
     from ..api.sources import file_source
     from ..api.stack import ServerStack
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
+             "workers": args.workers,
              "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
              "device": args.device,
              "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
@@ -154,6 +174,10 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError("--demo and --haptic-device both stream the default session: choose "
                          "one (the device cuts with its own hand)")
     config = load_config(args.config, flags)
+    if config.workers is None:
+        from ..hotloop.process import default_workers
+
+        config = dataclasses.replace(config, workers=default_workers())
     if config.no_auth and not is_loopback(config.host):
         raise ValueError(f"--no-auth is for loopback development; {config.host} is reachable "
                          "from other machines, so its session needs a key")
@@ -164,7 +188,7 @@ def main(args: argparse.Namespace) -> int:
     bone = config.bone
     say = functools.partial(print, flush=True)
     say(f"loading {bone} and warming up the kernels (the first start compiles them: "
-        "up to a minute)...")
+        "about 30 s, once)...")
     t0 = time.monotonic()
     from ..api.journal import discard, discard_session
 
@@ -179,6 +203,10 @@ def main(args: argparse.Namespace) -> int:
             "last run is forgotten; other sessions are resumed)")
     stack = ServerStack(config, token, say=say)
     conn_path = conn = None
+    # While the parent waits for the hot loops to warm up (other processes), it loads the
+    # kernels its own bone build needs: a process's first cached kernel costs ~1 s of numba
+    # set-up, which would otherwise follow the loops' start instead of overlapping it.
+    threading.Thread(target=_load_bone_kernels, name="burrforce-kernels", daemon=True).start()
     try:
         stack.start_backend()
         plane = stack.plane
@@ -216,7 +244,8 @@ def main(args: argparse.Namespace) -> int:
                 pass
             if not server.started:
                 return
-            udp_host, udp_port = stack.udp_address
+            # The default session's worker: with a pool it need not be worker 0.
+            udp_host, udp_port = plane.address(session) or stack.udp_address
             c = connection.Connection(udp_host, udp_port, session.id, session.key_hex,
                                       session.config.frame,
                                       (session.bone_info or {}).get("voxel_mm"), stack.url,
@@ -224,7 +253,7 @@ def main(args: argparse.Namespace) -> int:
             context["conn"] = c
             context["path"] = connection.write(c, args.connection_file)
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
-                    context["path"], args.haptic_device)
+                    context["path"], args.haptic_device, _pool_line(plane, session))
             if args.demo:
                 _run_demo(say, context["path"], done, session.bone_info)
             _report(stack.stats, session.id, done, say, plane.devices)
@@ -276,11 +305,13 @@ def _resumed_default(say, session, source, frame: str | None, key_hex: str | Non
 
 def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
             new_token: bool, config: ServeConfig, conn_path: Path,
-            haptic_device: str | None = None) -> None:
+            haptic_device: str | None = None, pool: str | None = None) -> None:
     say(f"ready in {elapsed_s:.1f} s")
     output = f"coupled output (device {config.device})" if config.device else "raw force"
     say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
         + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
+    if pool:
+        say(f"  {pool}")
     say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")
     if new_token:
         say(f"  token {token}   (new: shown only now; kept in "
@@ -306,6 +337,17 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     say(f"      curl -H \"Authorization: Bearer $TOKEN\" -o bone.stl "
         f"{url}/v1/sessions/{c.session}/export/mesh")
     say("Ctrl-C stops the server.")
+
+
+def _pool_line(plane, session) -> str | None:
+    """With several workers: their ports, and which one the default session is on."""
+    workers = plane.workers
+    if len(workers) < 2:
+        return None
+    ports = ", ".join(str(h.address[1]) if h.address else "?" for h in workers)
+    return (f"POOL  {len(workers)} hot-loop workers on UDP ports {ports}; session "
+            f"{session.id} is on worker {session.worker} (each session's port: GET "
+            "/v1/sessions/ID → udp)")
 
 
 def demo_start_mm(bone_info: dict | None, length_mm: float = 10.0) -> tuple[float, float]:

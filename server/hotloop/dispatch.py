@@ -26,13 +26,16 @@ from ...proto.messages import (
     INTERNAL,
     NEW_STREAM,
     OK,
+    TAG_BYTES,
     UNKNOWN_SESSION,
     VERSION_1,
     WRONG_STREAM,
     Pose,
 )
+from . import wire
 from .bucket import TokenBucket
 from .session import Session
+from .wire import RX_BYTES, decode_pose_into, new_buffers, pose_arrays
 
 log = logging.getLogger("burrforce.hotloop")
 
@@ -68,6 +71,11 @@ class Dispatcher:
         self.accepted = False
         self._notices = TokenBucket(NOTICE_RATE_HZ, NOTICE_BURST)
         self._internal_logged_ns = -(1 << 62)
+        #: The datagram buffer (the loop receives into ``rx_view``), the decoded pose, and
+        #: the reply buffer: one set for the loop's thread, reused by every packet.
+        self.rx, self._pose_i, self._pose_f, self.tx, _ = new_buffers()
+        self.rx_view = memoryview(self.rx)
+        self.tx_view = memoryview(self.tx)
 
     def add(self, session: Session) -> None:
         if session.id in self.sessions:
@@ -75,21 +83,29 @@ class Dispatcher:
         self.sessions[session.id] = session
 
     def warm_up(self) -> None:
-        """Run a hello, a commit and a tick per session through decode, tag, tick and encode
-        (a pose far outside the bone: nothing is carved), so no first packet pays for
-        compiling or importing; then forget them and start counting from zero (the stream
+        """Run a hello, a commit, a tick and an unusable pose per session through decode,
+        tag, tick and encode (a pose far outside the bone: nothing is carved), so no first
+        packet pays for compiling or importing (the general decoder's path too: the hello is
+        sent in a non-canonical form); then forget them and start counting from zero (the stream
         the warm-up used is ended; ``next_stream`` is as it was)."""
+        wire.warm_up()
         for session in self.sessions.values():
             first = session.next_stream
             far = session.transform.point_out((-1e5, -1e5, -1e5))
             pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),
                         session.engine.params.min_cutting_rpm + 1.0, True)
-            self.handle(encode_pose(pose, session.tagger), time.monotonic_ns())  # hello
+            hello = encode_pose(pose, session.tagger)
+            # The hello with its version as a uint 8 (cc 02): valid, not canonical.
+            hello = hello[:1] + b"\xcc" + hello[1:]
+            if session.tagger is not None:
+                hello = hello[:-TAG_BYTES] + session.tagger.mac(hello[:-TAG_BYTES])
+            self.handle(hello, time.monotonic_ns())
             stream = session.offer
-            for seq in (1, 2):  # the commit, then a tick of the open stream
+            # The commit, a tick of the open stream, and a BAD_VALUE reply.
+            for seq, rpm in ((1, pose.rpm), (2, pose.rpm), (3, float("nan"))):
                 self.handle(encode_pose(pose._replace(seq=seq, t_client_us=1 + seq,
-                                                      stream=stream), session.tagger),
-                            time.monotonic_ns())
+                                                      stream=stream, rpm=rpm),
+                                        session.tagger), time.monotonic_ns())
             session.reset_statistics()
             # The warm-up's stream never left this process: the first number a client gets
             # is still the one the session was given.
@@ -99,58 +115,79 @@ class Dispatcher:
 
     def handle(self, data: bytes, t_recv_ns: int) -> bytes | None:
         """The answer to ``data`` (received at ``t_recv_ns``, monotonic), or None."""
+        n = len(data)
+        if n <= RX_BYTES:
+            self.rx_view[:n] = data
+        out = self.handle_received(n, t_recv_ns, data)
+        return bytes(out) if type(out) is memoryview else out
+
+    def handle_received(self, n: int, t_recv_ns: int,
+                        data: bytes | None = None) -> memoryview | bytes | None:
+        """The answer to the ``n`` bytes in ``rx`` (received at ``t_recv_ns``), or None. The
+        answer may be a slice of the reply buffer: send it before the next datagram.
+
+        ``data``: the datagram as bytes if the caller has it (else it is copied out of ``rx``
+        for the general decoder when it is not a canonical POSE); required if ``n`` >
+        RX_BYTES."""
         counters = self.counters
         counters["received"] += 1
         self.accepted = False
+        pose_i = self._pose_i
         try:
-            pose = decode_pose(data)
+            if not decode_pose_into(self.rx, n, pose_i, self._pose_f):
+                # Not the canonical layout: the general decoder, which knows every other
+                # valid form and what is wrong with the rest.
+                if data is None:
+                    data = bytes(self.rx_view[:n])
+                pose_arrays(decode_pose(data), pose_i, self._pose_f)
         except ProtocolError as exc:
-            return self._reject(exc.code, exc.header, len(data), None, t_recv_ns,
-                                exc.version)
+            return self._reject(exc.code, exc.header, n, None, t_recv_ns, exc.version)
         except Exception:  # a decoder bug must not stop the loop
             return self._internal(None, t_recv_ns)
-        header = (pose.session, pose.seq, pose.t_client_us)
-        session = self.sessions.get(pose.session)
+        sid, seq, t_client, _, stream, _, _, has_tag = pose_i.tolist()
+        session = self.sessions.get(sid)
         if session is None:
-            return self._reject(UNKNOWN_SESSION, header, len(data), None, t_recv_ns)
+            return self._reject(UNKNOWN_SESSION, (sid, seq, t_client), n, None, t_recv_ns)
         tagger = session.tagger
-        if tagger is not None and (pose.tag is None or not tagger.verify(data)):
-            return self._reject(BAD_TAG, header, len(data), session, t_recv_ns)
-        stream = pose.stream
+        if tagger is not None and (not has_tag or not tagger.verify(
+                self.rx_view[:n] if data is None else data)):
+            return self._reject(BAD_TAG, (sid, seq, t_client), n, session, t_recv_ns)
         if stream == 0 or stream != session.stream:  # 0 is never an open stream
             if stream == 0 or stream != session.offer:
-                return self._handshake(session, pose, len(data), t_recv_ns)
+                return self._handshake(session, seq, t_client, stream, n, t_recv_ns)
             session.commit()
-        order = session.admit(pose.seq)
+        order = session.admit(seq)
         if order != OK:  # stale and duplicate datagrams are never answered (replays)
             counters[ERROR_NAMES[order]] += 1
             return None
         self.accepted = True
         try:
-            out, error = session.respond(pose, t_recv_ns)
+            out, error = session.respond_into(pose_i, self._pose_f, t_recv_ns, self.tx,
+                                              self.tx_view)
         except Exception:
             session.counters["internal"] += 1
-            return self._internal(session, t_recv_ns, pose)
+            return self._internal(session, t_recv_ns)
         if error != OK:
             counters[ERROR_NAMES[error]] += 1
         counters["replied"] += 1
         return out
 
-    def _handshake(self, session: Session, pose: Pose, size: int, now_ns: int) -> bytes | None:
+    def _handshake(self, session: Session, seq: int, t_client_us: int, stream: int, size: int,
+                   now_ns: int) -> bytes | None:
         """A hello (answered NEW_STREAM with the offer) or a POSE of a stream that is not
         open (WRONG_STREAM): never ticked, answered within the session's own notice bucket
         and never longer than the request."""
         counters = self.counters
-        if pose.stream == 0:
+        if stream == 0:
             code, stream = NEW_STREAM, session.hello()
         else:
-            code, stream = WRONG_STREAM, pose.stream
+            code = WRONG_STREAM
             session.counters["wrong_stream"] += 1
         counters[ERROR_NAMES[code]] += 1
         if not session.stream_notice_allowed(now_ns, code == WRONG_STREAM):
             counters["notices_suppressed"] += 1
             return None
-        notice = encode_notice_values(session.id, pose.seq, pose.t_client_us, code, stream,
+        notice = encode_notice_values(session.id, seq, t_client_us, code, stream,
                                       session.tagger)
         if len(notice) > size:
             return None
@@ -180,17 +217,18 @@ class Dispatcher:
         self.counters["noticed"] += 1
         return notice
 
-    def _internal(self, session: Session | None, now_ns: int,
-                  pose: Pose | None = None) -> bytes | None:
+    def _internal(self, session: Session | None, now_ns: int) -> memoryview | None:
+        """Count (and log, at most once a second) a failure; for a session's admitted pose
+        (in ``_pose_i``), an INTERNAL reply."""
         self.counters["internal"] += 1
         if now_ns - self._internal_logged_ns > INTERNAL_LOG_INTERVAL_S * 1e9:
             self._internal_logged_ns = now_ns
             log.exception("internal error on a datagram (further ones within %.0f s are only "
                           "counted)", INTERNAL_LOG_INTERVAL_S)
-        if session is None or pose is None:
+        if session is None:
             return None
         try:  # zero force with the error, so the client does not keep rendering the last one
-            return session.error_reply(pose, INTERNAL, now_ns)
+            return session.error_reply(self._pose_i, INTERNAL, now_ns, self.tx, self.tx_view)
         except Exception:
             return None
 

@@ -11,12 +11,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...proto import frames
-from ...proto.codec import check_pose_values, encode_reply_values
+from ...proto.codec import encode_reply_values
 from ...proto.messages import (
     BAD_VALUE,
     DUPLICATE,
     FLAG_NO_CARVE,
-    FLAG_RESET_VELOCITY,
     OK,
     STALE,
     STATUS_CLAMPED,
@@ -24,8 +23,6 @@ from ...proto.messages import (
     STATUS_CUTTING,
     STATUS_FORBIDDEN,
     STATUS_SHAFT_CONTACT,
-    STATUS_SLOW_SPINDLE,
-    STATUS_STALE,
     Pose,
 )
 from ...proto.sequence import seq_after
@@ -37,7 +34,6 @@ from ..haptics.config import HapticsConfig
 from ..haptics.coupling import CLAMPED, PLACED, coupled_finish, coupled_predict, raw_limits
 from ..haptics.layout import S_PERIOD
 from ..haptics.stage import HapticStage
-from ..haptics.velocity import velocity_step
 from ..model.kernels import (
     OUT_COMPONENTS,
     OUT_CONTACT_AREA,
@@ -48,6 +44,52 @@ from ..model.kernels import (
 )
 from ..model.vibration import VibrationParams
 from .bucket import TokenBucket
+from .stages import (
+    IN_BAD_VALUE,
+    IN_RESET,
+    IN_TELEPORT,
+    K_A,
+    K_B,
+    K_DET,
+    K_GAP_US,
+    K_MAX_SPEED2,
+    K_MIN_RPM,
+    K_NOISE_MM,
+    K_SCALE,
+    K_TOOL,
+    K_VIB_FD_N,
+    K_VIB_G,
+    K_VIB_HARMONIC,
+    K_VIB_ON,
+    K_WINDOW_S,
+    M_FLAGS,
+    M_JUMPED,
+    M_RING,
+    M_SESSION,
+    M_STALE,
+    M_STATUS,
+    RAW_MODEL,
+    RAW_TAGGED,
+    W_AXIS,
+    W_LAST_FORCE,
+    W_P,
+    W_RPM,
+    W_V,
+    W_VEL,
+    new_state,
+    pose_in,
+    reply_error,
+    reply_raw,
+    ring_views,
+)
+from .wire import (
+    P_FLAGS,
+    P_SEQ,
+    P_SPINDLE_ON,
+    P_T_CLIENT,
+    new_buffers,
+    pose_arrays,
+)
 
 ZERO3 = (0.0, 0.0, 0.0)
 #: Model-stage times kept per session for statistics (a ring buffer).
@@ -169,12 +211,17 @@ class Session:
         #: Names this session's count of timed ticks: a new session under the same id, or
         #: counters reset, start another (``Dispatcher.snapshot``'s ``tick_times_since``).
         self.tick_epoch = next(_TICK_EPOCHS)
-        self.last_force_N = 0.0
         #: The bone's shared-memory counters, kept while publishing is off.
         self._shared_header = engine.grid.shared_header
-        self._c = np.zeros(3)
-        self._a = np.zeros(3)
-        self._v = np.zeros(3)
+        #: The per-packet stages' state (``stages``): constants, this packet's values in the
+        #: grid frame, the velocity estimate's memory, the reply's values.
+        self._k, self._m = new_state()
+        self._m[M_SESSION] = session_id
+        # The bone engine's inputs are this packet's values where pose_in wrote them.
+        self._c = self._k[W_P:W_P + 3]
+        self._a = self._k[W_AXIS:W_AXIS + 3]
+        self._v = self._k[W_V:W_V + 3]
+        self.last_force_N = 0.0
         #: A ``record.Recorder`` taking every tick (``Recorder.attach``), or None.
         self.recorder = None
         self.configure(config if config is not None else SessionConfig())
@@ -201,13 +248,35 @@ class Session:
         self._model = config.model
         self._carve = config.carve
         self._vibration = config.vibration
+        k = self._k
+        k[K_A:K_A + 9] = self.transform.matrix.ravel()
+        k[K_B:K_B + 3] = self.transform.offset_mm
+        k[K_SCALE] = self.transform.scale
+        k[K_DET] = self.transform.det
+        k[K_TOOL:K_TOOL + 3] = self.tool_axis
+        k[K_GAP_US] = self._gap_us
+        k[K_MAX_SPEED2] = self._max_speed2
+        vib = config.vibration
+        k[K_VIB_ON] = 0.0 if vib is None else 1.0
+        if vib is not None:
+            k[K_VIB_FD_N], k[K_VIB_G], k[K_VIB_HARMONIC] = vib.fd_N, vib.g, vib.harmonic
         if old is None or (old.haptics, old.max_speed_mm_s) != (config.haptics,
                                                                config.max_speed_mm_s):
             self.haptics = HapticStage(config.haptics, grid.spacing_mm, config.max_speed_mm_s)
+            # Its velocity ring lives in the stages' state (one kernel argument), empty.
+            self._m[M_RING:M_RING + 2] = 0
+            h = self.haptics
+            h.ring_t, h.ring_p, h.ring_state = ring_views(self._k, self._m)
         #: The stage runs for the coupled output, or to hold the raw output to a device's
         #: limits; a raw session without a device skips it.
         self._coupled = self.haptics.coupled
         self._limited = self.haptics.limited
+        #: The raw output without device limits: ``stages.reply_raw`` (unless recording).
+        self._raw_fast = not (self._coupled or self._limited)
+        self._m[M_FLAGS] = ((RAW_MODEL if config.model else 0)
+                            | (RAW_TAGGED if self.tagger is not None else 0))
+        k[K_NOISE_MM] = self.haptics.noise_mm
+        k[K_WINDOW_S] = self.haptics.window_s
         self.engine_changed()
         if geometry_changed:
             self._forget_motion()
@@ -225,6 +294,7 @@ class Session:
         stream goes on; only the carve memory is reset by the engine)."""
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
         self._radius_mm = self.engine.params.radius_mm
+        self._k[K_MIN_RPM] = self._min_cutting_rpm
 
     def end_stream(self) -> None:
         """End the open stream and forget any offer: the client's next POSE gets
@@ -236,14 +306,14 @@ class Session:
 
     def _forget_motion(self) -> None:
         """Forget the velocity estimate, the haptic stage's state and the last carve."""
-        self._prev_t_us: int | None = None
-        self._t0_us = 0
-        self._vel = ZERO3
-        self._vel_stale = True
+        m = self._m
+        m[:M_RING] = 0  # the velocity estimate's (the ring itself: haptics.restart below)
+        m[M_STALE] = 1
+        #: The tool jumped (a teleport or FLAG_RESET_VELOCITY): the proxy follows it.
+        m[M_JUMPED] = 1
+        self._k[W_VEL:W_VEL + 3] = 0.0
         #: The client time of the last tick (the haptic stage's step), None before one.
         self._tick_t_us: int | None = None
-        #: The tool jumped (a teleport or FLAG_RESET_VELOCITY): the proxy follows it.
-        self._jumped = True
         self.haptics.restart()
         self.engine.forget_last_carve()
 
@@ -285,93 +355,97 @@ class Session:
         self.last_seq = seq
         return OK
 
-    def respond(self, pose: Pose, t_recv_ns: int) -> tuple[bytes, int]:
-        """(encoded reply, error code) for an admitted, authentic pose: a BAD_VALUE reply,
-        with zero force, if its values are unusable."""
-        self.counters["accepted"] += 1
-        if check_pose_values(pose) is not None:
-            self.counters["bad_value"] += 1
-            self._prev_t_us = None  # no velocity across an unusable pose
-            self.haptics.device_released()  # an error reply carries zero force
-            return self.error_reply(pose, BAD_VALUE, t_recv_ns), BAD_VALUE
-        return encode_reply_values(self._tick(pose, t_recv_ns), self.tagger), OK
+    def respond_into(self, pose_i: np.ndarray, pose_f: np.ndarray, t_recv_ns: int,
+                     tx: np.ndarray, tx_view: memoryview) -> tuple[memoryview | bytes, int]:
+        """(reply, error code) for an admitted, authentic pose (``wire.P_*`` in ``pose_i``,
+        ``pose_f``): a BAD_VALUE reply, with zero force, if its values are unusable.
 
-    def error_reply(self, pose: Pose, error: int, t_recv_ns: int) -> bytes:
-        """An encoded reply carrying ``error`` and zero force, torque and vibration."""
-        return encode_reply_values(
-            (self.id, pose.seq, pose.t_client_us, t_recv_ns // 1000,
-             time.monotonic_ns() // 1000, error, 0, ZERO3, ZERO3, ZERO3, 0.0, 0.0, 0.0, ZERO3,
-             ZERO3, ZERO3, 0.0, 0.0, 0.0, self.engine.grid.version, ZERO3), self.tagger)
-
-    def _velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
-        """(velocity in the grid frame, mm/s; stale): the client's own if it sent one, else
-        estimated from the positions at the client's timestamps (adaptive windowing, robust
-        to jitter and encoder quantization: ``haptics.velocity``); either way reset when
-        implausibly fast."""
-        if pose.velocity is not None:
-            v = self.transform.vector_in(pose.velocity)
-        else:
-            prev_t = self._prev_t_us
-            if prev_t is None or pose.flags & FLAG_RESET_VELOCITY:
-                self._jumped = prev_t is not None
-                return self._reset_velocity(pose, p)
-            dt_us = pose.t_client_us - prev_t
-            if dt_us == 0:  # a coarse client clock: keep the estimate, measure over two
-                return self._vel, self._vel_stale
-            if dt_us < 0 or dt_us > self._gap_us:
-                return self._reset_velocity(pose, p)
-            h = self.haptics
-            out = h.device_v
-            velocity_step(h.ring_t, h.ring_p, h.ring_state,
-                          (pose.t_client_us - self._t0_us) * 1e-6, p[0], p[1], p[2],
-                          h.noise_mm, h.window_s, out)
-            v = (out[0], out[1], out[2])
-        if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > self._max_speed2:
-            self.counters["teleports"] += 1
-            self.engine.forget_last_carve()
-            self._jumped = True
-            return self._reset_velocity(pose, p)
-        self._prev_t_us, self._vel, self._vel_stale = pose.t_client_us, v, False
-        return v, False
-
-    def _reset_velocity(self, pose: Pose, p: frames.Vec3) -> tuple[frames.Vec3, bool]:
-        self.counters["velocity_resets"] += 1
-        h = self.haptics
-        h.forget_velocity()
-        # The window's times count from here: small numbers keep full precision.
-        self._t0_us = pose.t_client_us
-        velocity_step(h.ring_t, h.ring_p, h.ring_state, 0.0, p[0], p[1], p[2], h.noise_mm,
-                      h.window_s, h.device_v)
-        self._prev_t_us, self._vel, self._vel_stale = pose.t_client_us, ZERO3, True
-        return ZERO3, True
-
-    def _tick(self, pose: Pose, t_recv_ns: int) -> tuple:
-        """One tick: the reply's values in wire order (tag excluded).
-
-        Written flat on purpose: a packet arrives after the process slept for most of a
-        millisecond, with cold caches, and every call and temporary object costs several
-        times its warm price (measured: 40 µs of Python per packet at 1 kHz against 15 µs
-        back-to-back before this was flattened).
+        The reply is written into ``tx`` (uint8 (TX_BYTES,)) and returned as a slice of
+        ``tx_view`` (valid until the next packet), or as bytes for the coupled and limited
+        outputs and while recording.
         """
+        counters = self.counters
+        counters["accepted"] += 1
+        code = pose_in(pose_i, pose_f, self._k, self._m)
+        if code & (IN_BAD_VALUE | IN_RESET):
+            if code & IN_BAD_VALUE:
+                counters["bad_value"] += 1
+                self.haptics.device_released()  # an error reply carries zero force
+                return self.error_reply(pose_i, BAD_VALUE, t_recv_ns, tx, tx_view), BAD_VALUE
+            counters["velocity_resets"] += 1
+            if code & IN_TELEPORT:
+                counters["teleports"] += 1
+                self.engine.forget_last_carve()
+        if not self._raw_fast or self.recorder is not None:
+            return encode_reply_values(self._tick(pose_i, pose_f, int(self._m[M_STATUS]),
+                                                  t_recv_ns), self.tagger), OK
+        # The raw output: what is numeric is one kernel; Python only calls the engine.
+        engine = self.engine
+        removed_mm3 = 0.0
+        if self._model:
+            carve = self._carve and not pose_i[P_FLAGS] & FLAG_NO_CARVE
+            t0 = time.perf_counter_ns()
+            removed = engine.step_raw(self._c, self._a, self._v, float(self._k[W_RPM]), carve)
+            self.tick_ns[self.ticks_timed % TICK_TIMES_KEPT] = time.perf_counter_ns() - t0
+            self.ticks_timed += 1
+            engine.record_contact(t_recv_ns * 1e-9)
+            if removed:
+                removed_mm3 = engine.removed_this_tick_mm3()
+        n = reply_raw(self._k, self._m, pose_i, engine.out, engine.shaft_out, engine.touch, tx,
+                      removed_mm3, t_recv_ns // 1000, time.monotonic_ns() // 1000,
+                      engine.grid.version)
+        out = tx_view[:n]
+        tagger = self.tagger
+        if tagger is not None:
+            tagger.sign(out)
+        return out, OK
+
+    def respond(self, pose: Pose, t_recv_ns: int) -> tuple[bytes, int]:
+        """(encoded reply, error code) for an admitted, authentic ``pose`` (tools and tests;
+        the dispatcher calls :meth:`respond_into`)."""
+        _, pose_i, pose_f, tx, _ = new_buffers()
+        pose_arrays(pose, pose_i, pose_f)
+        out, error = self.respond_into(pose_i, pose_f, t_recv_ns, tx, memoryview(tx))
+        return bytes(out), error
+
+    def error_reply(self, pose_i: np.ndarray, error: int, t_recv_ns: int, tx: np.ndarray,
+                    tx_view: memoryview) -> memoryview:
+        """A reply carrying ``error`` and zero force, torque and vibration, to the pose in
+        ``pose_i``, written into ``tx`` (as :meth:`respond_into`)."""
+        n = reply_error(self._k, self._m, pose_i, error, t_recv_ns // 1000,
+                        time.monotonic_ns() // 1000, self.engine.grid.version, tx)
+        out = tx_view[:n]
+        tagger = self.tagger
+        if tagger is not None:
+            tagger.sign(out)
+        return out
+
+    def _pose(self, pose_i: np.ndarray, pose_f: np.ndarray) -> Pose:
+        """The decoded pose as a Pose (for the recorder; the tag is not kept)."""
+        session, seq, t_us, flags, stream, on, has_v, _ = pose_i.tolist()
+        f = pose_f.tolist()
+        return Pose(session, seq, t_us, tuple(f[0:3]), tuple(f[3:7]), f[7], bool(on),
+                    tuple(f[8:11]) if has_v else None, flags, stream)
+
+    def _tick(self, pose_i: np.ndarray, pose_f: np.ndarray, status: int,
+              t_recv_ns: int) -> tuple:
+        """One tick of the coupled or limited output, or while recording, after
+        ``stages.pose_in``: the reply's values in wire order (tag excluded). (The raw output
+        is ``stages.reply_raw``.)"""
         tf = self.transform
         engine = self.engine
-        p = tf.point_in(pose.position)
-        v, stale = self._velocity(pose, p)
-        ax, ay, az = tf.direction_in(frames.quat_rotate(pose.orientation, self.tool_axis))
-        norm = math.sqrt(ax * ax + ay * ay + az * az)
-        ax, ay, az = ax / norm, ay / norm, az / norm
-        spindle_on = pose.spindle_on
-        rpm = pose.rpm if spindle_on else 0.0
-        status = STATUS_STALE if stale else 0
-        if spindle_on and 0.0 < abs(rpm) < self._min_cutting_rpm:
-            status |= STATUS_SLOW_SPINDLE
+        k = self._k
+        t_client_us = int(pose_i[P_T_CLIENT])
+        spindle_on = bool(pose_i[P_SPINDLE_ON])
+        rpm = float(k[W_RPM])
+        ax, ay, az = k[W_AXIS:W_AXIS + 3].tolist()
+        v = k[W_V:W_V + 3].tolist()
         removed_mm3 = 0.0
         force = resistive = torque = proxy_p = proxy_v = ZERO3
         power_w = cut_n = coupling_k = coupling_b = 0.0
         fx = fy = fz = 0.0
         if self._model:
-            c, a, vv = self._c, self._a, self._v
-            a[0], a[1], a[2] = ax, ay, az
+            c, a, vv = self._c, self._a, self._v  # already the pose's p, axis and v
             coupled = self._coupled
             if coupled or self._limited:
                 # The haptic stage steps by the client's clock; an interval it cannot use
@@ -379,24 +453,21 @@ class Session:
                 # rate the coupling is tuned to) counts as the usual one.
                 hs = self.haptics
                 last_t = self._tick_t_us
-                self._tick_t_us = pose.t_client_us
-                dt_us = -1 if last_t is None else pose.t_client_us - last_t
+                self._tick_t_us = t_client_us
+                dt_us = -1 if last_t is None else t_client_us - last_t
                 if 0 < dt_us <= self._gap_us:
                     dt_s = dt_us * 1e-6
                 else:
                     dt_s = hs.state[S_PERIOD] if hs.state[S_PERIOD] > 0.0 else 1e-3
             if coupled:
                 dp, dv = hs.device_p, hs.device_v
-                dp[0], dp[1], dp[2] = p
-                dv[0], dv[1], dv[2] = v
-                if coupled_predict(hs.state, hs.params, dp, dv, dt_s, self._jumped, c,
-                                   vv) & PLACED:
+                dp[:] = c
+                dv[:] = vv
+                if coupled_predict(hs.state, hs.params, dp, dv, dt_s, bool(self._m[M_JUMPED]),
+                                   c, vv) & PLACED:
                     engine.forget_last_carve()  # the proxy jumped: no sweep from before
-                self._jumped = False
-            else:
-                c[0], c[1], c[2] = p
-                vv[0], vv[1], vv[2] = v
-            carve = self._carve and not pose.flags & FLAG_NO_CARVE
+                self._m[M_JUMPED] = 0
+            carve = self._carve and not pose_i[P_FLAGS] & FLAG_NO_CARVE
             t0 = time.perf_counter_ns()
             removed = engine.step_raw(c, a, vv, rpm, carve)
             self.tick_ns[self.ticks_timed % TICK_TIMES_KEPT] = time.perf_counter_ns() - t0
@@ -453,9 +524,9 @@ class Session:
             resistive = tuple(resistive)
             cut_n = math.sqrt(fx * fx + fy * fy + fz * fz)
             if self.recorder is not None:
-                self.recorder.record(t_recv_ns, pose, c, a, vv, rpm, carve, engine.out,
-                                     engine.shaft_out, removed_mm3, engine.grid.version,
-                                     status, force, torque)
+                self.recorder.record(t_recv_ns, self._pose(pose_i, pose_f), c, a, vv, rpm,
+                                     carve, engine.out, engine.shaft_out, removed_mm3,
+                                     engine.grid.version, status, force, torque)
         amplitude = frequency = 0.0
         vib = self._vibration
         if vib is not None and spindle_on and rpm != 0.0:
@@ -465,10 +536,19 @@ class Session:
         vib_axis = tf.direction_out((fx / cut_n, fy / cut_n, fz / cut_n) if cut_n > 0.0
                                     else (ax, ay, az))
         self.last_force_N = math.sqrt(force[0] ** 2 + force[1] ** 2 + force[2] ** 2)
-        return (self.id, pose.seq, pose.t_client_us, t_recv_ns // 1000,
+        return (self.id, int(pose_i[P_SEQ]), t_client_us, t_recv_ns // 1000,
                 time.monotonic_ns() // 1000, OK, status, force, resistive, torque, power_w,
                 amplitude, frequency, vib_axis, proxy_p, proxy_v, coupling_k, coupling_b,
                 removed_mm3, engine.grid.version, tf.vector_out(v))
+
+    @property
+    def last_force_N(self) -> float:
+        """|force| of the last reply, N."""
+        return float(self._k[W_LAST_FORCE])
+
+    @last_force_N.setter
+    def last_force_N(self, value: float) -> None:
+        self._k[W_LAST_FORCE] = value
 
     # -- statistics -------------------------------------------------------------------------
     def reset_statistics(self) -> None:

@@ -1,0 +1,210 @@
+"""``burrforce bench startup``: how long ``burrforce serve`` takes to be ready, with an empty
+numba cache (the first start: it compiles) and with a warm one (every later start).
+
+Ready means all three: the banner printed, REST ``/v1/health`` answering 200 and the hot loop
+answering a UDP pose (plain ``serve``; with ``--demo`` the demo streams the session itself,
+so only the first two). Each run is a real ``burrforce serve`` in a subprocess on free
+loopback ports with a fresh data directory; every run of a case shares one cache directory,
+which starts empty. NUMBA_DEBUG_CACHE counts what each run compiled ("data saved") and
+loaded: a warm run must save nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+from ...client.udp import BurrClient
+from .serve_process import spawn_serve
+from .timing import machine_line
+
+#: (name, serve arguments).
+CASES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("serve", ()),
+    ("serve --demo", ("--demo",)),
+)
+READY_TIMEOUT_S = 300.0
+
+
+def _health(url: str, deadline: float) -> None:
+    while True:
+        try:
+            if httpx.get(f"{url}/v1/health", timeout=2.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{url}/v1/health did not answer 200")
+        time.sleep(0.01)
+
+
+def _udp(host: str, port: int, session: int, key: str | None, deadline: float) -> None:
+    with BurrClient(host, port, session, key, timeout_s=0.5) as client:
+        while True:
+            try:
+                client.exchange((0.0, 0.0, 100.0))  # far above the bone: nothing is cut
+                return
+            except TimeoutError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the hot loop on {host}:{port} did not answer") \
+                        from None
+
+
+def _cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system) used so far by ``pid`` and its descendants still alive;
+    None where /proc cannot tell (not Linux). Unlike wall time, not inflated by other work
+    on a busy machine."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        total = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                for child in f.read().split():
+                    total += _cpu_s(int(child)) or 0.0
+        return total
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def start_once(folder: Path, cache_dir: Path, args: tuple[str, ...], udp: bool) -> dict:
+    """One ``serve`` from launch to ready, then stopped. Seconds since the launch, and the
+    CPU seconds its processes had used by then."""
+    env = {"NUMBA_CACHE_DIR": str(cache_dir), "NUMBA_DEBUG_CACHE": "1"}
+    t0 = time.monotonic()
+    serve = spawn_serve(folder, *args, timeout_s=READY_TIMEOUT_S, env=env)
+    try:
+        banner_s = time.monotonic() - t0
+        c = serve.connection
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        _health(c.http_url, deadline)
+        if udp:
+            _udp(c.host, c.udp_port, c.session, c.key_hex, deadline)
+        ready_s = time.monotonic() - t0
+        cpu_s = _cpu_s(serve.proc.pid)
+    finally:
+        _, after = serve.stop()
+    printed = serve.banner + after
+    return {"banner_s": banner_s, "ready_s": ready_s, "cpu_s": cpu_s,
+            # Counted over the whole run: the spare's warm-up after "ready" counts too.
+            "kernels_saved": printed.count("[cache] data saved"),
+            "kernels_loaded": printed.count("[cache] data loaded")}
+
+
+def run(runs: int = 5, cold: bool = True, progress=print,
+        cache_dir: Path | None = None) -> dict:
+    """``cache_dir``: warm runs only, on that cache as it is (e.g. one ``burrforce compile``
+    filled); None: a new empty one per case."""
+    results = []
+    cold = cold and cache_dir is None
+    for name, args in CASES:
+        with tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp:
+            given = cache_dir is not None
+            cache = cache_dir if given else Path(tmp) / "numba-cache"  # empty: it compiles
+            case = {"case": name, "cold": None, "warm": []}
+            if not cold and not given:
+                progress(f"{name}: filling the cache")
+                start_once(Path(tmp) / "fill", cache, args, udp=not args)
+            for i in range(runs + (1 if cold else 0)):
+                folder = Path(tmp) / f"run{i}"
+                r = start_once(folder, cache, args, udp=not args)
+                shutil.rmtree(folder, ignore_errors=True)
+                label = "cold" if cold and i == 0 else "warm"
+                progress(f"{name} {label}: ready in {r['ready_s']:.2f} s (banner "
+                         f"{r['banner_s']:.2f} s, CPU {r['cpu_s'] or 0:.2f} s), kernels saved "
+                         f"{r['kernels_saved']}, loaded {r['kernels_loaded']}")
+                if label == "cold":
+                    case["cold"] = r
+                else:
+                    case["warm"].append(r)
+            ready = [r["ready_s"] for r in case["warm"]]
+            case["warm_ready_s_median"] = statistics.median(ready)
+            case["warm_ready_s_min"] = min(ready)
+            case["warm_ready_s_max"] = max(ready)
+            case["warm_kernels_saved"] = sum(r["kernels_saved"] for r in case["warm"])
+            cpu = [r["cpu_s"] for r in case["warm"] if r["cpu_s"] is not None]
+            case["warm_cpu_s_median"] = statistics.median(cpu) if cpu else None
+            results.append(case)
+    return {"cases": results, "runs": runs, "python": sys.executable}
+
+
+def write_results(result: dict, out: Path, note: str = "") -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    result = {**result, "date": stamp, "machine": machine_line()}
+    js = out / "startup.json"
+    js.write_text(json.dumps(result, indent=2) + "\n")
+    lines = [
+        "# Start-up (`burrforce bench startup`)", "",
+        f"{stamp}; {result['machine']}; {result['python']}.", "",
+        "Seconds from launching `burrforce serve` (default bone phantom:temporal, free "
+        "loopback ports, a new data directory) until it is ready: banner printed, "
+        "`/v1/health` 200 and, for plain `serve`, a UDP pose answered. Cold: an empty numba "
+        "cache (the first start compiles every kernel); warm: the same cache afterwards "
+        f"(median of {result['runs']} runs). Kernels saved: numba cache entries written "
+        "(`NUMBA_DEBUG_CACHE`), over the whole run including the spare's warm-up: a warm "
+        "start must write none. CPU s: user + system seconds the server's processes had used "
+        "when ready (robust to a busy machine, unlike the wall times).", "",
+        "| case | cold ready s | cold kernels saved | warm ready s median | min | max "
+        "| warm CPU s median | warm kernels saved |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for c in result["cases"]:
+        cold = c["cold"] or {}
+        cold_s = f"{cold['ready_s']:.1f}" if cold else ""
+        cpu = c["warm_cpu_s_median"]
+        cpu_s = "" if cpu is None else f"{cpu:.2f}"
+        lines.append(
+            f"| `{c['case']}` | {cold_s} | {cold.get('kernels_saved', '')} | "
+            f"{c['warm_ready_s_median']:.2f} | {c['warm_ready_s_min']:.2f} | "
+            f"{c['warm_ready_s_max']:.2f} | "
+            f"{cpu_s} | "
+            f"{c['warm_kernels_saved']} |")
+    if note:
+        lines += ["", note]
+    lines.append("")
+    md = out / "startup.md"
+    md.write_text("\n".join(lines))
+    return md, js
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "startup", help="time to ready of serve: first start (empty numba cache) and later",
+        description="Start `burrforce serve` and `serve --demo` with an empty numba cache, "
+                    "then RUNS more times with the cache it filled, and time each until it "
+                    "is ready (banner, /v1/health, a UDP pose answered). Writes "
+                    "OUT/startup.md and startup.json.")
+    p.add_argument("--runs", type=int, default=5, help="warm starts per case. Default 5")
+    p.add_argument("--no-cold", action="store_true",
+                   help="skip timing the cold start (the cache is still filled first)")
+    p.add_argument("--cache-dir", type=Path, default=None,
+                   help="time warm starts only, on this numba cache as it is (e.g. filled by "
+                        "`burrforce compile`) instead of a new empty one")
+    p.add_argument("--out", type=Path, default=Path("benchmarks"),
+                   help="results directory. Default ./benchmarks")
+    p.add_argument("--note", default="", help="a paragraph appended to startup.md")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    def say(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    if args.runs < 1:
+        raise ValueError("--runs must be at least 1")
+    md, js = write_results(run(args.runs, not args.no_cold, say, args.cache_dir), args.out,
+                           args.note)
+    print(md.read_text())
+    say(f"results written to {md} and {js}")
+    return 0

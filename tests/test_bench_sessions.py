@@ -1,0 +1,73 @@
+"""``burrforce bench sessions``: a short run through the real command (a real ``serve`` per
+session count, real sockets), checked for structure and counts, never for timings."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from burrforce.server.bench import sessions as bench_sessions
+from burrforce.server.cli import main
+
+REQUIRED = ("sessions", "workers", "sent", "answered", "lost", "late", "rtt_p50_us",
+            "rtt_p99_us", "rtt_p999_us", "send_late_p99_us", "generator_cpu_pct",
+            "server_cpu_pct", "server_cpu_per_session_pct")
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> tuple[list[dict], dict, str]:
+    out = tmp_path_factory.mktemp("sessions")
+    import contextlib
+    import io
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main(["bench", "sessions", "--sessions", "1,2", "--seconds", "1",
+                     "--warmup-s", "0.3", "--json", "--out", str(out)])
+    assert code == 0
+    written = json.loads((out / "sessions.json").read_text())
+    return json.loads(printed.getvalue()), written, (out / "sessions.md").read_text()
+
+
+def test_rows_have_the_required_keys_and_consistent_counts(smoke):
+    rows, written, _ = smoke
+    assert [r["sessions"] for r in rows] == [1, 2]
+    assert written["rows"] == rows
+    for r in rows:
+        assert set(REQUIRED) <= set(r)
+        assert r["workers"] >= 1 and len(r["worker_pids"]) == r["workers"]
+        # One POSE per session per tick of the window (the schedule never skips a tick).
+        assert r["sent"] == r["sessions"] * round(1.0 * 1000)
+        assert r["lost"] >= 0 and r["answered"] + r["lost"] == r["sent"]
+        assert 0 <= r["late"] <= r["answered"]
+        assert r["server_cpu_pct"] >= 0 and r["generator_cpu_pct"] >= 0
+        assert r["server_cpu_per_session_pct"] == pytest.approx(
+            r["server_cpu_pct"] / r["sessions"])
+        if r["answered"]:
+            assert 0 < r["rtt_p50_us"] <= r["rtt_p99_us"] <= r["rtt_p999_us"] <= r["rtt_max_us"]
+            assert r["send_late_p50_us"] >= 0
+
+
+def test_the_markdown_has_a_table_per_count_the_machine_and_the_target(smoke):
+    _, written, md = smoke
+    assert "## N = 1 " in md and "## N = 2 " in md
+    assert written["machine"] in md
+    assert bench_sessions.TARGET in md
+
+
+def test_session_counts_are_parsed_and_checked():
+    assert bench_sessions._counts("1, 2,16") == [1, 2, 16]
+    for bad in ("", "0", "1,x", "300"):
+        with pytest.raises(Exception, match="session count"):
+            bench_sessions._counts(bad)
+
+
+def test_worker_pids_come_from_the_pool_else_from_the_single_loop():
+    pool = {"supervisor": {"pid": 11}, "workers": [{"index": 0, "pid": 21},
+                                                   {"index": 1, "pid": 22}]}
+    assert bench_sessions._worker_pids(pool) == [21, 22]
+    # A server without a pool (no ``workers`` in its health): the supervisor's loop.
+    assert bench_sessions._worker_pids({"supervisor": {"pid": 11}}) == [11]
+    with pytest.raises(RuntimeError, match="no hot-loop process"):
+        bench_sessions._worker_pids({"supervisor": {"pid": None}, "workers": []})

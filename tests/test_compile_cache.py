@@ -1,0 +1,149 @@
+"""The numba cache: where the ``burrforce`` command puts it, ``burrforce compile`` filling it,
+and later processes — alone, two at once, a real ``serve`` with its hot-loop child — loading
+every kernel from it without compiling (``NUMBA_DEBUG_CACHE``: "data loaded", no "data
+saved")."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from burrforce.server import __version__, compile_cache
+from burrforce.server.bench.serve_process import spawn_serve
+
+SAVED = "[cache] data saved"
+LOADED = "[cache] data loaded"
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("NUMBA_CACHE_DIR", "NUMBA_DEBUG_CACHE", "XDG_CACHE_HOME")}
+    env.update(extra)
+    return env
+
+
+def _compile(env: dict[str, str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "compile"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+
+
+def _finish(proc: subprocess.Popen) -> str:
+    out, _ = proc.communicate(timeout=600)
+    assert proc.returncode == 0, out
+    return out
+
+
+_DIRNAME = f"numba-{__version__}-{compile_cache.kernels_digest()}"
+
+
+def test_the_kernels_digest_follows_every_module_a_kernel_may_read(tmp_path):
+    (tmp_path / "server" / "bone").mkdir(parents=True)
+    (tmp_path / "proto").mkdir()
+    kernel = tmp_path / "server" / "bone" / "voxels.py"
+    kernel.write_text("from numba import njit\n")
+    layout = tmp_path / "proto" / "messages.py"  # constants a kernel compiles in
+    layout.write_text("POSE = 1\n")
+    roots = (tmp_path / "server", tmp_path / "proto")
+    first = compile_cache.kernels_digest(roots)
+    assert compile_cache.kernels_digest(roots) == first
+    layout.write_text("POSE = 2\n")
+    compile_cache.kernels_digest.cache_clear()
+    second = compile_cache.kernels_digest(roots)
+    assert second != first
+    kernel.write_text("from numba import njit\nLIMIT = 2\n")
+    compile_cache.kernels_digest.cache_clear()
+    assert compile_cache.kernels_digest(roots) not in (first, second)
+
+
+def test_default_is_under_xdg_cache_home_and_versioned(tmp_path):
+    env = {"XDG_CACHE_HOME": str(tmp_path)}
+    assert compile_cache.default_cache_dir(env) == tmp_path / "burrforce" / _DIRNAME
+    assert compile_cache.configure(env) == tmp_path / "burrforce" / _DIRNAME
+    assert env["NUMBA_CACHE_DIR"] == str(tmp_path / "burrforce" / _DIRNAME)
+
+
+@pytest.mark.parametrize("xdg", [None, "", "relative/cache"])
+def test_without_an_absolute_xdg_cache_home_it_is_under_home(xdg):
+    env = {} if xdg is None else {"XDG_CACHE_HOME": xdg}
+    assert compile_cache.configure(env) == \
+        Path.home() / ".cache" / "burrforce" / _DIRNAME
+
+
+@given(st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"),
+               min_size=1), st.one_of(st.none(), st.text(min_size=1)))
+def test_numba_cache_dir_set_by_the_user_wins(cache_dir, xdg):
+    env = {"NUMBA_CACHE_DIR": cache_dir}
+    if xdg is not None:
+        env["XDG_CACHE_HOME"] = xdg
+    assert compile_cache.configure(env) == Path(cache_dir)
+    assert env["NUMBA_CACHE_DIR"] == cache_dir
+
+
+def test_the_command_sets_it_before_numba_is_imported(tmp_path):
+    code = ("import sys\n"
+            "from burrforce.server import cli\n"
+            "assert 'numba' not in sys.modules, 'imported before the cache dir is set'\n"
+            "try:\n"
+            "    cli.main(['--version'])\n"
+            "except SystemExit:\n"
+            "    pass\n"
+            "import numba\n"
+            "print(numba.config.CACHE_DIR)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=_env(XDG_CACHE_HOME=str(tmp_path)), timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == \
+        str(tmp_path / "burrforce" / _DIRNAME)
+
+
+@pytest.fixture(scope="module")
+def compiled(tmp_path_factory) -> tuple[Path, str]:
+    """A cache filled from empty by two ``burrforce compile`` at once (as hot-loop workers
+    starting together on a cold cache: both compile, and numba's atomic replaces must leave
+    a whole cache), and what the first printed."""
+    cache = tmp_path_factory.mktemp("numba-cache")
+    env = _env(NUMBA_CACHE_DIR=str(cache), NUMBA_DEBUG_CACHE="1")
+    outs = [_finish(p) for p in [_compile(env), _compile(env)]]
+    return cache, outs[0]
+
+
+def test_compile_fills_the_cache_it_is_given(compiled, tmp_path):
+    cache, out = compiled
+    assert out.count(SAVED) > 0
+    indexes = list(cache.rglob("*.nbi"))
+    assert len(indexes) >= out.count(SAVED) // 2 > 0  # an index per kernel, data per signature
+    summary = [line for line in out.splitlines() if "cached kernels in" in line]
+    assert len(summary) == 1 and str(cache) in summary[0]
+    kept, total = (int(x) for x in summary[0].split(" cached")[0].split(" of "))
+    assert 0 < kept <= total and total - kept <= 2  # the rest is named, not silently skipped
+
+
+def test_after_compile_processes_only_load_even_two_at_once(compiled):
+    cache, _ = compiled
+    before = sorted((p, p.stat().st_mtime_ns) for p in cache.rglob("*.nb*"))
+    env = _env(NUMBA_CACHE_DIR=str(cache), NUMBA_DEBUG_CACHE="1")
+    outs = [_finish(p) for p in [_compile(env), _compile(env)]]
+    for out in outs:
+        assert out.count(SAVED) == 0
+        assert out.count(LOADED) > 0
+    assert sorted((p, p.stat().st_mtime_ns) for p in cache.rglob("*.nb*")) == before
+
+
+def test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache(compiled, tmp_path):
+    cache, _ = compiled
+    serve = spawn_serve(tmp_path, "--bone", "phantom:temporal",
+                        env={"NUMBA_CACHE_DIR": str(cache), "NUMBA_DEBUG_CACHE": "1"})
+    code, after = serve.stop()
+    printed = serve.banner + after
+    assert code == 0, printed
+    assert printed.count(SAVED) == 0, printed
+    # The hot loop's wire kernels run only in the child: loaded there, from this cache.
+    assert f"{LOADED} from '{cache}" in printed
+    assert "wire.decode_pose_into" in printed
