@@ -4,10 +4,8 @@ gets a socket of its own, the main socket's work is capped. Real hot loop, real 
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing
 import socket
-import threading
 import time
 
 import pytest
@@ -15,9 +13,7 @@ import pytest
 from burrforce.client.udp import BurrClient
 from burrforce.server.bench.flood import _payloads
 from burrforce.server.hotloop import HotLoopConfig, HotLoopProcess, SessionSpec
-from burrforce.server.hotloop.dispatch import Dispatcher
-from burrforce.server.hotloop.loop import MAIN_BUDGET_HZ, MAIN_BURST, open_socket, serve
-from burrforce.server.hotloop.process import build_session
+from burrforce.server.hotloop.loop import MAIN_BUDGET_HZ, MAIN_BURST, open_socket
 
 KEY = bytes(range(32))
 SESSION = 3
@@ -96,51 +92,3 @@ def test_a_second_server_on_the_same_port_is_refused():
             open_socket("127.0.0.1", port)
     finally:
         first.close()
-
-
-
-def _queued_while_busy(count: int) -> tuple[list[int], list[int], int]:
-    """The loop's own thread, held up by its lock as a long tick would, while a streaming
-    peer sends ``count`` POSEs: (seqs sent, seqs answered, POSEs superseded)."""
-    dispatcher = Dispatcher()
-    dispatcher.add(build_session(SessionSpec(SESSION, "phantom:workpiece", 0.5, KEY)))
-    dispatcher.warm_up()
-    sock = open_socket("127.0.0.1", 0)
-    lock = threading.Lock()
-    stopping = threading.Event()
-    loop = threading.Thread(target=serve, args=(sock, dispatcher, lock, stopping), daemon=True)
-    loop.start()
-    try:
-        with BurrClient(*sock.getsockname()[:2], session=SESSION, key=KEY,
-                        timeout_s=5.0) as client:
-            client.exchange((5.0, 0.0, 5.0))  # the stream is open: the peer gets its socket
-            client.exchange((5.0, 0.0, 5.0))  # (adopted after the first reply was sent)
-            assert dispatcher.counters["peers_adopted"] == 1
-            with lock:  # sent to the peer socket's queue before the loop can read on
-                queued = [client.send((5.0, 0.0, 5.0)) for _ in range(count)]
-            answered = []
-            while (reply := client.receive(timeout_s=1.0)) is not None:
-                answered.append(reply.reply.seq)
-    finally:
-        stopping.set()
-        with contextlib.suppress(OSError):  # raises ENOTCONN, and wakes the poll all the same
-            sock.shutdown(socket.SHUT_RDWR)
-        loop.join(10)
-        sock.close()
-    assert not loop.is_alive()
-    return queued, answered, dispatcher.counters["superseded"]
-
-
-def test_a_loop_that_fell_behind_answers_a_peers_newest_pose_and_passes_over_the_older():
-    """Many POSEs queued: only the newest is ticked and answered (SPEC 5.1) instead of every
-    one of them late."""
-    queued, answered, superseded = _queued_while_busy(6)
-    assert answered[-1] == queued[-1]  # the newest is answered
-    assert set(answered) <= set(queued) and len(answered) + superseded == len(queued)
-    # The loop may have read the first before it waited for the lock; the rest it passed over.
-    assert len(answered) <= 2 and superseded >= len(queued) - 2
-
-
-def test_a_hiccup_of_two_queued_poses_answers_both():
-    queued, answered, superseded = _queued_while_busy(2)
-    assert answered == queued and superseded == 0

@@ -33,9 +33,6 @@ from .wire import RX_BYTES
 #: Read one byte more than a request may have, so an oversized datagram shows as such (the
 #: kernel truncates it to the buffer) instead of arriving cut to a plausible length.
 RECV_BYTES = RX_BYTES
-#: At most this many queued datagrams of one peer are passed over for a newer one per event
-#: (bounded: a peer cannot hold the loop reading).
-COALESCE_MAX = 64
 #: Kernel receive buffer asked for, bytes: a few hundred ms of 1 kHz traffic from many sessions.
 RCVBUF_BYTES = 1 << 20
 #: A peer's own socket needs only a few packets of slack: it is read first.
@@ -53,9 +50,8 @@ PEER_IDLE_S = 10.0
 #: How often peers are reconciled with the sessions (removed sessions, idle peers), s.
 HOUSEKEEPING_S = 0.5
 #: The loop's own counters (in ``Dispatcher.counters``): times the main socket went unread
-#: for being over budget; peers given a socket; sockets that could not be made; datagrams of
-#: a peer left unread-and-unanswered because a newer one of the same peer was queued.
-LOOP_COUNTERS = ("main_deferred", "peers_adopted", "peer_socket_errors", "superseded")
+#: for being over budget; peers given a socket; sockets that could not be made.
+LOOP_COUNTERS = ("main_deferred", "peers_adopted", "peer_socket_errors")
 
 
 def _bind(host: str, port: int, reuse: bool) -> socket.socket:
@@ -155,38 +151,6 @@ class PeerSockets:
             self.close(fd)
 
 
-def _read_peer(peer_sock: socket.socket, rx: memoryview, spare: memoryview,
-               counters: dict[str, int]) -> tuple[int, int]:
-    """Read a peer's next datagram into ``rx``; returns its size and the size of the one
-    queued after it, read into ``spare`` (0: none), to be handled next.
-
-    A loop that fell behind finds three or more of a peer's POSEs queued: then only the newest
-    is worth a tick (newest wins, SPEC 5.1) — ticking them all would answer every one late (a
-    saturated loop queued seconds). It is left in ``rx`` and the older ones are passed over,
-    never answered, counted as ``superseded``. Two queued (a hiccup of a millisecond) are
-    both answered.
-
-    Raises:
-        OSError: the first read failed (an ICMP error from an earlier reply).
-    """
-    n = peer_sock.recv_into(rx, RECV_BYTES)
-    try:
-        pending = peer_sock.recv_into(spare, RECV_BYTES, socket.MSG_DONTWAIT)
-    except OSError:  # nothing more queued (or an ICMP error): the usual case
-        return n, 0
-    passed = 0
-    for _ in range(COALESCE_MAX):
-        try:
-            n = peer_sock.recv_into(rx, RECV_BYTES, socket.MSG_DONTWAIT)
-        except OSError:
-            break
-        passed += 1
-    if passed == 0:
-        return n, pending
-    counters["superseded"] += passed + 1  # the first and the one in ``spare`` as well
-    return n, 0
-
-
 def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
           stopping: threading.Event) -> None:
     """Answer datagrams until ``stopping`` is set and the socket is shut down.
@@ -208,7 +172,6 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     # its reply buffer: no bytes object per packet either way.
     handle = dispatcher.handle_received
     rx = dispatcher.rx_view
-    spare = memoryview(bytearray(RECV_BYTES))
     budget = TokenBucket(MAIN_BUDGET_HZ, MAIN_BURST)
     main_on = True
     housekeeping_ns = clock()
@@ -231,9 +194,10 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                 peer_sock = by_fd.get(fd)
                 if peer_sock is None:
                     continue
-                # Peers first.
+                # Peers first. One datagram per event: epoll is level-triggered, so a queue
+                # that holds more is reported again at once (no exception to end a batch).
                 try:
-                    n, pending = _read_peer(peer_sock, rx, spare, counters)
+                    n = peer_sock.recv_into(rx, RECV_BYTES)
                 except OSError:  # ICMP from an earlier reply: the peer's port closed
                     continue
                 t_recv = clock()
@@ -245,15 +209,6 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                         peer_sock.send(out)
                     except OSError:
                         counters["send_errors"] += 1
-                if pending:  # the one after it, read to see whether the loop fell behind
-                    rx[:pending] = spare[:pending]
-                    with lock:
-                        out = handle(pending, t_recv)
-                    if out is not None:
-                        try:
-                            peer_sock.send(out)
-                        except OSError:
-                            counters["send_errors"] += 1
             if main_ready:
                 if budget.take(now):
                     try:
