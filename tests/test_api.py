@@ -213,6 +213,15 @@ def test_doubling_us_doubles_the_force(stack, api):
     ({"tool_axis": [0, 0, 0]}, "zero"),
     ({"primary_material": 9}, "no material with label 9"),
     ({"bogus": 1}, "extra"),
+    ({"burr": {"shape": {"kind": "cone", "radius_mm": 1.0}}}, "kind must be one of"),
+    ({"burr": {"shape": {"kind": "cylinder", "radius_mm": 1.0}}}, "missing ['length_mm']"),
+    ({"burr": {"shape": {"kind": "sphere", "radius_mm": 2.0},
+               "cutter": {"kind": "fluted", "n_flutes": 0}}}, "n_flutes"),
+    ({"burr": {"shape": {"kind": "sphere", "radius_mm": 2.0}}, "radius_mm": 1.5},
+     "disagrees with the burr's shape"),
+    ({"burr": {"shape": {"kind": "sphere", "radius_mm": 9.0}}}, "largest radius must be in"),
+    ({"burr": {"shape": {"kind": "cylinder", "radius_mm": 1.0, "length_mm": 50.0}}},
+     "at most 20 mm long"),
 ])
 def test_bad_parameters_change_nothing(api, body, words):
     before = api.get("/sessions/1/parameters")
@@ -401,6 +410,63 @@ def test_engine_changes_keep_the_stream_and_a_frame_change_restarts_it(stack, ap
         api.patch(f"/sessions/{sid}/parameters", json={"placement_position": [0, 0, 0.1]})
         assert c.exchange((2.12, 0.0, 1.5), rpm=60_000).reply.status & STATUS_STALE
     api.delete(f"/sessions/{sid}")
+
+
+def _cut(client, y_mm: float, z_mm: float, ticks: int, x0: float = 2.0,
+         step_mm: float = 0.003) -> list:
+    """Feed along ±x (the sign of ``step_mm``) on an open stream; the replies."""
+    feed = (math.copysign(FEED[0], step_mm), 0.0, 0.0)
+    return [client.exchange((x0 + step_mm * k, y_mm, z_mm), rpm=60_000, velocity=feed).reply
+            for k in range(ticks)]
+
+
+def test_a_tool_change_mid_stream_keeps_the_stream_and_knows_the_old_groove(stack, api):
+    """A 4 mm burr cuts a groove; the surgeon swaps in a 3 mm one over REST while the engine
+    streams on (no hello, nothing STALE). Inside the groove the big burr cut, the small one
+    feels nothing; on fresh bone it cuts as a fresh session with that burr does; swapped
+    back to a 4 mm burr 0.5 mm aside, it widens the groove and cuts again; swapped for a
+    fluted cylinder, it cuts with it and vibrates at its tooth frequency."""
+    from burrforce.proto.messages import STATUS_STALE
+
+    s = _session(api)
+    sid = s["id"]
+    small = {"radius_mm": 1.5, "shaft_radius_mm": 0.75}
+    fresh = _session(api, parameters=small)
+    with BurrClient(*stack.udp_address, session=fresh["id"], key=fresh["key"],
+                    timeout_s=2.0) as c:
+        reference = _steady(_cut(c, 4.0, 1.0, 200))
+    with BurrClient(*stack.udp_address, session=sid, key=s["key"], timeout_s=2.0) as c:
+        big = _steady(_cut(c, -4.0, 1.5, 300))
+        assert api.patch(f"/sessions/{sid}/parameters", json=small).status_code == 200
+        # Back along the groove, 0.1 mm above its floor: nothing left to cut.
+        inside = _cut(c, -4.0, 1.1, 200, x0=2.897, step_mm=-0.003)
+        assert max(np.linalg.norm(r.force) for r in inside[20:]) <= 0.01 * np.linalg.norm(big)
+        # Fresh bone, 0.5 mm deep: the small burr's force.
+        cut = _steady(_cut(c, 4.0, 1.0, 200))
+        np.testing.assert_allclose(cut, reference, rtol=0.02, atol=0.01)
+        assert api.patch(f"/sessions/{sid}/parameters",
+                         json={"radius_mm": 2.0, "shaft_radius_mm": 1.0}).status_code == 200
+        widen = _cut(c, -3.5, 1.5, 200)
+        assert all(r.status & STATUS_CUTTING for r in widen[-50:])
+        assert 0.1 * np.linalg.norm(big) < np.linalg.norm(_steady(widen))
+        # A six-flute cylindrical cutting burr: its force, and its teeth's vibration.
+        fluted = {"shape": {"kind": "cylinder", "radius_mm": 1.5, "length_mm": 4.0,
+                            "end": "round"},
+                  "cutter": {"kind": "fluted", "n_flutes": 6, "helix_deg": 20.0}}
+        r = api.patch(f"/sessions/{sid}/parameters", json={"burr": fluted})
+        assert r.status_code == 200, r.text
+        view = r.json()
+        assert view["burr"]["cutter"]["n_flutes"] == 6 and view["radius_mm"] == 1.5
+        assert view["harmonic"] == 6.0 and view["burr_calibrated"] is False
+        flutes = _cut(c, 0.0, 2.0 - 0.5, 200)  # its tip (2 mm below) 0.5 mm into fresh bone
+        assert all(r.status & STATUS_CUTTING for r in flutes[-50:])
+        assert np.linalg.norm(_steady(flutes)) > 0.05
+        assert flutes[-1].vibration_frequency_hz == pytest.approx(6 * 60_000 / 60)
+        replies = inside + widen + flutes
+        assert not any(r.status & STATUS_STALE for r in replies)
+        assert c.counters["hellos"] == 1 and c.counters["timeouts"] == 0
+    for session in (sid, fresh["id"]):
+        api.delete(f"/sessions/{session}")
 
 
 def test_us_set_at_creation_stays_on_its_material_across_a_reset(api):

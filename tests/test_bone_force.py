@@ -230,11 +230,18 @@ def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
                 continue  # coarse corners are always sampled
             n = (b.sin_theta_v[j] * b.cos_phi_v[k], b.sin_theta_v[j] * b.sin_phi_v[k],
                  b.cos_theta_v[j])
-            p = c + engine.params.radius_mm * (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
+            radius = engine.params.radius_mm
+            p = c + radius * (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
+            # The corner's patch (the path's share): half a sub-element along θ and φ.
+            st, ct = b.sin_theta_v[j], b.cos_theta_v[j]
+            cp, sp = b.cos_phi_v[k], b.sin_phi_v[k]
+            s1 = 0.5 * radius * b.d_theta / b.refine * (ct * cp * e[0] + ct * sp * e[1]
+                                                         - st * e[2])
+            s2 = 0.5 * radius * b.d_phi / b.refine * st * (cp * e[1] - sp * e[0])
             frac = sample_bone(g.density, g.swept, g.labels, engine.materials.us,
                                engine.materials.usk, g.brick_bone, p[0], p[1], p[2], *h, *c,
-                               engine.params.radius_mm, r_in2, r_out2, cache, *o,
-                               engine._stamp)[0]
+                               radius, r_in2, r_out2, cache, *o, engine._stamp,
+                               engine.path.candidates, *s1, *s2)[0]
             if vert[j, k, 0] == 0.0 and frac != 0.0:
                 continue  # an unneeded corner (no facing element): not sampled at all
             in_bone += frac > 0.0

@@ -83,9 +83,10 @@ def test_reference_on_a_tilted_surface_matches_the_model():
     assert r.removed_mm3_s == pytest.approx(ref.removed_mm3_s, rel=2e-3)
 
 
-# Worst |F| error measured over these axes and feeds at the default resolution: 1.64 % at
-# 0.1 mm, 1.09 % at 0.2 mm, 0.32 % at 0.5 mm, ≤ 0.15 % deeper. Shallow cuts span few elements.
-DEPTH_TOLERANCE = {0.1: 0.02, 0.2: 0.015, 0.5: 0.005, 1.0: 0.005, 2.0: 0.005}
+# Worst |F| error measured over these axes and feeds at the default resolution: 0.00 % at
+# 0.1 mm (a cap that narrow is integrated exactly), 0.69 % at 0.2 mm (where the exact cap
+# blends into the grid), 0.32 % at 0.5 mm, ≤ 0.15 % deeper.
+DEPTH_TOLERANCE = {0.1: 0.005, 0.2: 0.01, 0.5: 0.005, 1.0: 0.005, 2.0: 0.005}
 
 
 @pytest.mark.parametrize("depth", sorted(DEPTH_TOLERANCE))

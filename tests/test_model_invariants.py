@@ -241,10 +241,8 @@ def test_spin_direction_worked_by_hand(model):
 def test_force_vanishes_continuously_at_first_touch(model, axis, feed):
     # No step in force or removal when the burr first reaches the surface. In a groove both
     # are O(depth); plunging along the axis the force is O(√depth), because the cut cap sits
-    # on the spin pole where dA/|v_t| is largest. Accuracy this shallow is not claimed: when
-    # the cap sits on the grid's pole, each of the n_phi pole elements is bounded by the whole
-    # cap, so removal is over-counted (measured ×144 at 1e-6 mm deep, +48 % at 1e-3 mm,
-    # +4.7 % at 0.01 mm; a follow-up issue) — only continuity is checked here.
+    # on the spin pole where dA/|v_t| is largest. Caps this narrow are integrated exactly
+    # (tests/test_model_pole.py holds removal to the analytic cap); here only continuity.
     previous = math.inf
     for depth in (1e-3, 1e-6, 1e-9, 1e-12):
         r = model.evaluate((0.0, 0.0, 2.0 - depth), axis, feed, RPM)

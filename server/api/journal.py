@@ -59,6 +59,7 @@ def session_record(session: ManagedSession, stream: int | None) -> dict:
     from .routes_sessions import parameters_view
 
     params = parameters_view(session)
+    params.pop("burr_calibrated")  # follows from the burr
     for name in ("us_n_mm2", "k", "primary_material_name"):  # in the material changes
         params.pop(name)
     source = session.source

@@ -43,6 +43,7 @@ from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S, start_pool
 from ..model.params import CuttingParams
+from ..model.shapes import Burr, Sphere
 from ..model.vibration import VibrationParams
 from .config import ServeConfig
 from .generation import bone_generation, next_generation
@@ -160,6 +161,26 @@ class ManagedSession:
 
     def effective_shaft(self) -> ShaftParams:
         return self.shaft if self.features.shaft else replace(self.shaft, length_mm=0.0)
+
+
+def _with_burr(params: CuttingParams, p: Parameters) -> CuttingParams:
+    """``params`` with ``p``'s burr and radius: a burr replaces the shape (its largest radius
+    becomes radius_mm, which must agree if given too); radius_mm alone resizes a round burr.
+    ValueError says what does not fit."""
+    if p.burr is not None:
+        burr = Burr.from_dict(p.burr)
+        new = params.with_(burr=burr, radius_mm=burr.shape.max_radius_mm)
+        if p.radius_mm is not None and abs(p.radius_mm - new.radius_mm) > 1e-9:
+            raise ValueError(f"radius_mm {p.radius_mm} disagrees with the burr's shape (largest "
+                             f"radius {new.radius_mm} mm): give the sizes in burr.shape only")
+        return new
+    if p.radius_mm is None:
+        return params
+    shape = params.shape
+    if not isinstance(shape.shape, Sphere):
+        raise ValueError(f"radius_mm resizes a round burr; this one is a {shape.shape.kind}: "
+                         f"give its sizes in burr.shape")
+    return params.with_(burr=Burr(Sphere(p.radius_mm), shape.cutter), radius_mm=p.radius_mm)
 
 
 def _device(current: DeviceProfile | None, p: Parameters) -> DeviceProfile | None:
@@ -564,13 +585,16 @@ class ControlPlane:
         nothing: a bad field leaves the session as it was)."""
         try:
             params = session.params.with_(**{k: v for k, v in (
-                ("radius_mm", p.radius_mm), ("spin", p.spin),
-                ("min_cutting_rpm", p.min_cutting_rpm)) if v is not None})
+                ("spin", p.spin), ("min_cutting_rpm", p.min_cutting_rpm)) if v is not None})
+            params = _with_burr(params, p)
             shaft = replace(session.shaft, **{k: v for k, v in (
                 ("radius_mm", p.shaft_radius_mm), ("length_mm", p.shaft_length_mm),
                 ("stiffness_n_mm3", p.shaft_stiffness_n_mm3)) if v is not None})
+            harmonic = p.harmonic
+            if harmonic is None and p.burr is not None:
+                harmonic = params.shape.cutter.harmonic  # flutes set the tooth frequency
             vibration = replace(session.vibration, **{k: v for k, v in (
-                ("fd_N", p.fd_N), ("g", p.g), ("harmonic", p.harmonic)) if v is not None})
+                ("fd_N", p.fd_N), ("g", p.g), ("harmonic", harmonic)) if v is not None})
             config = replace(session.config, **{k: v for k, v in (
                 ("frame", p.frame), ("tool_axis", p.tool_axis),
                 ("placement_position", p.placement_position),

@@ -6,7 +6,7 @@ Units are in the field names: mm, N, rpm, N/mm² (= N·mm per mm³ removed), s.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -19,6 +19,8 @@ Vec3 = Annotated[tuple[Finite, Finite, Finite], Field(description="x, y, z")]
 #: Burr radii of surgical burrs (0.5–10 mm in diameter), mm.
 BURR_RADIUS_MIN_MM = 0.25
 BURR_RADIUS_MAX_MM = 5.0
+#: The longest cutting head a surgical burr has, mm (long fissure burrs: ~10 mm).
+BURR_LENGTH_MAX_MM = 20.0
 #: The longest shaft a handpiece reaches with, mm (burr centre to the handpiece's nose).
 SHAFT_LENGTH_MAX_MM = 200.0
 #: A coordinate a POSE can reach (SPEC 3.1: positions within ±1e9 engine units).
@@ -100,6 +102,16 @@ class Parameters(Strict):
                                      description=(
         f"burr radius R, mm: {BURR_RADIUS_MIN_MM}–{BURR_RADIUS_MAX_MM}, the surgical burrs' "
         "0.5–10 mm diameters (a larger sphere would sweep away whole bones in one tick)"))
+    burr: dict[str, Any] | None = Field(None, description=(
+        "the burr's shape and cutter, e.g. {\"shape\": {\"kind\": \"cylinder\", "
+        "\"radius_mm\": 1.0, \"length_mm\": 4.0, \"end\": \"round\"}, \"cutter\": "
+        "{\"kind\": \"fluted\", \"n_flutes\": 6, \"helix_deg\": 20, \"rake_deg\": 0}}. "
+        "Shapes: sphere (radius_mm), cylinder (radius_mm, length_mm, end flat|round), barrel "
+        "(radius_mm at its equator, end_radius_mm, length_mm); cutters: abrasive (default) or "
+        "fluted (n_flutes, helix_deg, rake_deg, friction_deg — not calibrated against "
+        "measurements). Changing it mid-stream is a tool change: the stream goes on. "
+        "radius_mm follows the shape's largest radius; a fluted cutter sets the vibration "
+        "harmonic to its flute count unless harmonic is given"))
     spin: Literal["forward", "reverse"] | None = None
     min_cutting_rpm: Finite | None = Field(None, ge=1.0, le=1e7, description=(
         "below this spindle speed the burr does not cut, rpm"))
@@ -122,6 +134,23 @@ class Parameters(Strict):
         "generic; none: no device, the raw force unlimited)"))
     device_limits: DeviceLimits | None = Field(None, description=(
         "custom limits (makes the profile custom)"))
+
+    @field_validator("burr")
+    @classmethod
+    def _burr(cls, v):
+        if v is not None:
+            from ..model.shapes import Burr, profile_points
+            shape = Burr.from_dict(v).shape  # ValueError: what is wrong with it
+            if not BURR_RADIUS_MIN_MM <= shape.max_radius_mm <= BURR_RADIUS_MAX_MM:
+                raise ValueError(
+                    f"the burr's largest radius must be in [{BURR_RADIUS_MIN_MM}, "
+                    f"{BURR_RADIUS_MAX_MM}] mm (the surgical burrs' sizes), got "
+                    f"{shape.max_radius_mm:g}")
+            z = profile_points(shape.profile())[:, 1]
+            if z.max() - z.min() > BURR_LENGTH_MAX_MM:
+                raise ValueError(f"the burr must be at most {BURR_LENGTH_MAX_MM:g} mm long, "
+                                 f"got {z.max() - z.min():g}")
+        return v
 
     @field_validator("tool_axis")
     @classmethod

@@ -66,6 +66,8 @@ def parameters_view(s: ManagedSession) -> dict:
         "primary_material": primary,
         "primary_material_name": material.name if material else None,
         "fd_N": s.vibration.fd_N, "g": s.vibration.g, "harmonic": s.vibration.harmonic,
+        "burr": s.params.shape.to_dict(),
+        "burr_calibrated": s.params.shape.cutter.calibrated,
         "radius_mm": s.params.radius_mm, "spin": s.params.spin,
         "min_cutting_rpm": s.params.min_cutting_rpm,
         "shaft_radius_mm": s.shaft.radius_mm, "shaft_length_mm": s.shaft.length_mm,

@@ -16,6 +16,7 @@ from ..cli.args import float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case
+from .edges import edge_rows, render_edges
 from .groove import groove_block, run_groove
 from .timing import machine_line
 
@@ -28,6 +29,13 @@ TARGET_RIPPLE = 0.02
 #: oblique: the median and the worst case's p99, µs.
 TARGET_P50_US = 50.0
 TARGET_P99_US = 100.0
+EDGES_INTRO = (
+    "Where a trainee spends much of the time besides the steady groove. Plunge: removal rate "
+    "against the analytic spherical cap (P/Us vs v·π·(2Rh − h²)) from 10 µm deep, and the "
+    "depth steps on a fine sweep where the force decreases. Retrace: the spindle power and "
+    "force going back over a cut groove, as a share of the first pass's, and the widening "
+    "pass's energy balance. Shapes: each burr's model against its own converged reference "
+    "(`model.reference_shapes`).")
 #: The oblique grid: rotated 20° about x, then 15° about y, then 10° about z, so every face of
 #: the block cuts its voxels at an angle (as a scanned bone's surface does).
 OBLIQUE_EULER_XYZ_DEG = (20.0, 15.0, 10.0)
@@ -306,6 +314,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
                    help="results directory. Default ./benchmarks")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    p.add_argument("--no-edges", action="store_true",
+                   help="skip the edge rows (plunges, retracing a groove, burr shapes)")
     p.add_argument("--baseline", type=Path,
                    help="accuracy.json to compare against (drawn as \"before\"). Default: the "
                         "baseline kept in OUT/accuracy.json, or that file's rows if it has none")
@@ -327,6 +337,8 @@ def main(args: argparse.Namespace) -> int:
         flags.append(f"--measure-mm {args.measure_mm:g}")
     if args.no_oblique:
         flags.append("--no-oblique")
+    if args.no_edges:
+        flags.append("--no-edges")
     command = " ".join(["burrforce bench accuracy", *flags])
 
     def progress(row: AccuracyRow) -> None:
@@ -340,14 +352,23 @@ def main(args: argparse.Namespace) -> int:
     baseline, baseline_source = load_baseline(
         args.baseline if explicit else out / "accuracy.json", explicit)
     rows = run(voxel_sizes, n_thetas, not args.no_oblique, args.measure_mm, progress)
+    edges: list[dict] = []
+    if not args.no_edges:
+        edge_voxel = args.voxel_mm if args.voxel_mm is not None else TARGET_VOXEL_MM
+        edges = edge_rows(edge_voxel, not args.no_oblique, lambda r: print(
+            f"  {r['kind']} {r['grid']} {r['case']}: {r['value']:.4g} (target "
+            f"{r['target']:g}{'' if r['ok'] else ', NOT MET'})", file=sys.stderr))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.md").write_text(render_markdown(rows, command, args.measure_mm, baseline,
-                                                     baseline_source))
+    markdown = render_markdown(rows, command, args.measure_mm, baseline, baseline_source)
+    if edges:
+        markdown += "\n".join(["", "## Edges", "", EDGES_INTRO, *render_edges(edges)]) + "\n"
+    (out / "accuracy.md").write_text(markdown)
     (out / "accuracy.json").write_text(json.dumps({
         "source": f"{command} on {dt.date.today().isoformat()}",
         "rows": [asdict(r) for r in rows],
         "baseline_source": baseline_source,
         "baseline": [asdict(r) for r in baseline],
+        "edges": edges,
     }, indent=1))
     if not args.no_plot:
         plot(rows, out / "accuracy.png", baseline)

@@ -122,9 +122,10 @@ def render_markdown(rows: list[ModelBenchRow], wrapper_us: float, command: str) 
         f"{100 * default.max_error_rel:.3f} % max error, {default.median_us:.2f} µs median "
         f"({default.p99_us:.2f} µs p99) — {'met' if ok else 'NOT met'}.",
         "",
-        "Shallower cuts span fewer elements and are less accurate: over several axes and "
-        "feeds the worst |F| error at the default resolution is 1.6 % at 0.1 mm and 1.1 % at "
-        "0.2 mm deep (`tests/test_model_accuracy.py::test_other_depths_axes_and_feeds`).",
+        "Shallow cuts span few elements: caps narrower than min(4 elements, 0.5 rad) are "
+        "integrated exactly instead (blended into the grid over the last 20 %). Over several "
+        "axes and feeds the worst |F| error at the default resolution is 0.00 % at 0.1 mm and "
+        "0.7 % at 0.2 mm deep (`tests/test_model_accuracy.py::test_other_depths_axes_and_feeds`).",
         "",
         f"The full Python `CuttingModel.evaluate` (input validation, result object and "
         f"feed/lateral/normal components) at the default resolution: {wrapper_us:.1f} µs "

@@ -353,6 +353,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profiles", nargs="+", choices=list(PROFILES), default=list(PROFILES),
                    metavar="PROFILE", help=f"device profiles (default all: "
                                            f"{', '.join(PROFILES)})")
+    p.add_argument("--cases", nargs="+", metavar="CASE",
+                   help="only the runs of these cases (e.g. base teleport inside "
+                        "inside_rigid); default every case")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="output modes. Default both")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help=f"network/jitter seed. Default {DEFAULT_SEED}")
     p.add_argument("--json", action="store_true",
@@ -372,11 +377,19 @@ def main(args: argparse.Namespace) -> int:
         print(text, file=sys.stderr, flush=True)
 
     cases = quick_cases() if args.quick else sweep_cases()
+    if args.cases:
+        unknown = set(args.cases) - {c.case for c in cases}
+        if unknown:
+            say(f"unknown case(s): {', '.join(sorted(unknown))}")
+            return 2
+        cases = [c for c in cases if c.case in args.cases]
     t0 = time.perf_counter()
-    rows = run(args.profiles, cases, args.seed, progress=say, render=args.render)
+    rows = run(args.profiles, cases, args.seed, modes=tuple(args.modes), progress=say,
+               render=args.render)
     wall = time.perf_counter() - t0
     if not args.quick:
         settings = {"seed": args.seed, "render": args.render, "wall_s": wall,
+                    "cases": args.cases, "modes": args.modes,
                     "energy_tol_J": ENERGY_TOL_J,
                     "oscillation_fraction": OSC_FRACTION, "voxel_mm": VOXEL_MM,
                     "profiles": args.profiles}

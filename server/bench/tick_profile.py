@@ -27,11 +27,18 @@ import time
 
 import numpy as np
 
-from ..bone import BoneEngine, ShaftParams
-from ..bone.carve import carve_sphere
-from ..model import thesis_cases
-from .accuracy import oblique_rotation
-from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block
+from .. import compile_cache
+
+# Run as ``python -m``, not through the ``burrforce`` command: point numba at the cache of
+# these sources before it is imported (its cache keys a kernel on its own file only, so the
+# shared default cache can hold a tick compiled from other sources).
+compile_cache.configure()
+
+from ..bone import BoneEngine, ShaftParams  # noqa: E402
+from ..bone.carve import carve_sphere  # noqa: E402
+from ..model import thesis_cases  # noqa: E402
+from .accuracy import oblique_rotation  # noqa: E402
+from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block  # noqa: E402
 
 _HELPER_C = """
 #include <valgrind/callgrind.h>

@@ -25,13 +25,19 @@ from ..model.kernels import (
     new_scratch,
 )
 from ..model.params import CuttingParams
+from ..model.revolved import RevolvedGrid
+from ..model.shapes import Abrasive, Burr, Fluted, Sphere
 from .bricks import BRICK, LABEL_WORDS, forbidden_bricks, forbidden_from_labels
 from .carve import N_TOUCH, TOUCH_FORBIDDEN
+from .carve_revolved import N_GEO, bounding_radius_mm, profile_table, shape_bounds
+from .force_revolved import revolved_corners
 from .grid import BoneGrid, check_voxel_size
+from .history import BurrPath
 from .materials import N_LABELS, MaterialTable
 from .seqlock import header_address, read_version, write_begin, write_end
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from .tick import bone_tick
+from .tick_revolved import bone_tick_revolved
 from .voxels import coverage_cache_shape
 
 #: Elements the bone's surface crosses are integrated on refine × refine sub-elements. With
@@ -42,6 +48,8 @@ VOXEL_REFINE = 2
 MAX_CACHE_ENTRIES = 1 << 24
 
 _kernels_loaded = False
+#: The stand-in burr ``warm_up`` compiles the revolved tick with (any non-round-abrasive one).
+_WARM_CUTTER = Fluted(n_flutes=6)
 
 
 def load_kernels() -> None:
@@ -141,13 +149,48 @@ class BoneTickResult:
     bone_version: int
 
 
+@dataclass(frozen=True, eq=False)
+class RevolvedTables:
+    """What a tick of a burr other than the round abrasive one needs beside the engine's
+    buffers: its grid (``RevolvedGrid``), element corners (``force_revolved.revolved_corners``),
+    profile (``carve_revolved.profile_table``) and its bounds (``shape_bounds``), the cutter's
+    force ratios and scratch."""
+
+    burr: Burr
+    grid: RevolvedGrid
+    corners: np.ndarray
+    cos_pv: np.ndarray
+    sin_pv: np.ndarray
+    profile: np.ndarray
+    bounds: np.ndarray
+    normal_ratio: float
+    edge_ratio: float
+    material_k: bool
+    vert: np.ndarray
+    geo: np.ndarray
+    shaft_base: np.ndarray
+
+    @classmethod
+    def build(cls, burr: Burr, k: float, n_elements: int, refine: int) -> RevolvedTables:
+        grid = RevolvedGrid.build(burr, n_elements, refine)
+        corners, cos_pv, sin_pv = revolved_corners(burr, grid)
+        normal, edge = burr.cutter.force_ratios(k)
+        return cls(burr, grid, corners, cos_pv, sin_pv, profile_table(grid.segments),
+                   shape_bounds(burr), float(normal), float(edge),
+                   isinstance(burr.cutter, Abrasive),
+                   np.empty((grid.n_s + 1, grid.n_phi, 3)), np.zeros(N_GEO), np.zeros(3))
+
+
 class BoneEngine:
-    """A voxel bone cut by one spherical burr: carving, cutting force and shaft contact.
+    """A voxel bone cut by one burr: carving, cutting force and shaft contact.
 
     Each :meth:`step` is one numba call that sweeps the burr's neighbourhood (partial volume),
     evaluates the model's force from the voxels, and checks the shaft. Per-material Us and K
     come from ``materials``; ``params`` supplies the burr radius, spin direction and minimum
-    cutting speed (its own ``us_n_mm2``/``k`` are not used: materials own them).
+    cutting speed (its own ``us_n_mm2``/``k`` are not used: materials own them), and the
+    burr's shape (``params.shape``; :meth:`set_burr` changes it between ticks). A round
+    abrasive burr runs ``tick.bone_tick``; any other runs ``tick_revolved.bone_tick_revolved``
+    on a ``RevolvedGrid`` with about as many elements as the sphere's grid.
 
     Args:
         grid: the bone (carved in place).
@@ -176,8 +219,14 @@ class BoneEngine:
         #: Where the burr last carved (grid frame), NaN when unknown: carving skips what that
         #: position already swept.
         self._previous = np.full(3, np.nan)
-        self.params = params if params is not None else CuttingParams()
+        #: The path the burr carved along: availability that knows what it already cut.
+        spacing = np.asarray(grid.spacing_mm, dtype=np.float64)
+        self.path = BurrPath((-0.5 * spacing, (np.asarray(grid.shape) - 0.5) * spacing),
+                             carved_before=bool(grid.swept.any()))
+        #: Tables of the current burr when it is not the round abrasive one, else None.
+        self._revolved: RevolvedTables | None = None
         self.burr = BurrGrid.build(n_theta, n_phi, refine)
+        self.params = params if params is not None else CuttingParams()
         self._vert = np.empty((self.burr.n_theta + 1, self.burr.n_phi, 3))
         self._acc = new_scratch()
         self.out = new_buffer()
@@ -209,13 +258,41 @@ class BoneEngine:
     @params.setter
     def params(self, params: CuttingParams) -> None:
         check_burr(self.grid.spacing_mm, params, self.shaft)
-        self._params = params
-        shape = coverage_cache_shape(params.radius_mm, self.grid.spacing_mm)
+        burr = params.shape
+        round_abrasive = isinstance(burr.shape, Sphere) and isinstance(burr.cutter, Abrasive)
+        revolved = None if round_abrasive else RevolvedTables.build(
+            burr, params.k, self.burr.n_theta * self.burr.n_phi, self.burr.refine)
+        reach = params.radius_mm if revolved is None else bounding_radius_mm(burr)
+        shape = coverage_cache_shape(reach, self.grid.spacing_mm)
         if math.prod(shape) > MAX_CACHE_ENTRIES:
             shape = (1, 1, 1)  # voxels far finer than the burr: compute every coverage
+        carved_unknown = self._revolved is not None
+        self._params = params
+        self._revolved = revolved
         # Entries are stamped with the call that wrote them (stamps count from 1).
         self._cache = np.zeros(shape, dtype=np.int64)
-        self.forget_last_carve()
+        if carved_unknown:
+            # Another shape's cuts are not capsules of the path: it no longer knows them all.
+            self.forget_path()
+        else:
+            self.forget_last_carve()
+
+    @property
+    def burr_shape(self) -> Burr:
+        """The burr cutting now (``params.shape``: a round abrasive burr of
+        ``params.radius_mm`` unless :meth:`set_burr` chose another)."""
+        return self._params.shape
+
+    def set_burr(self, burr: Burr) -> None:
+        """Change the burr between ticks (a tool change mid-stream): its shape, size and
+        cutter. ``params.radius_mm`` becomes the shape's largest radius (the sphere's radius);
+        the coverage cache follows and the next tick carves the whole neighbourhood.
+        ValueError (engine unchanged) if the voxels are too coarse for it or the shaft is not
+        thinner than it."""
+        if not isinstance(burr, Burr):
+            raise TypeError(f"burr must be a shapes.Burr, got {type(burr).__name__}")
+        if burr != self.burr_shape:
+            self.params = self._params.with_(burr=burr)
 
     def set_materials(self, materials: MaterialTable,
                       brick_forbidden: np.ndarray | None = None) -> None:
@@ -257,6 +334,14 @@ class BoneEngine:
         """Carve the burr's whole neighbourhood next tick (after the radius or the bone's
         ``swept`` array changed behind the engine's back)."""
         self._previous[:] = np.nan
+        self.path.break_run()
+
+    def forget_path(self) -> None:
+        """The bone's ``swept`` voxels changed behind the engine's back (not by its own
+        carving): the path no longer describes every cut, so the voxels' availability is
+        consulted everywhere again."""
+        self.path.clear(carved_before=True)
+        self.forget_last_carve()
 
     # -- resolution -------------------------------------------------------------------------
     def set_resolution(self, n_theta: int, n_phi: int | None = None,
@@ -265,6 +350,10 @@ class BoneEngine:
         if wanted != self.burr.key:
             self.burr = BurrGrid.build(n_theta, n_phi, refine)
             self._vert = np.empty((self.burr.n_theta + 1, self.burr.n_phi, 3))
+            if self._revolved is not None:
+                self._revolved = RevolvedTables.build(
+                    self._revolved.burr, self._params.k, self.burr.n_theta * self.burr.n_phi,
+                    self.burr.refine)
 
     # -- ticks ------------------------------------------------------------------------------
     def step_raw(self, centre_g: np.ndarray, axis_g: np.ndarray, feed_g: np.ndarray,
@@ -289,17 +378,21 @@ class BoneEngine:
             if shared is not self._header:
                 self._header, self._header_at = shared, header_address(shared)
             write_begin(self._header_at)  # odd: voxels being written (SharedBone reads around)
-        removed = bone_tick(
-            b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
-            b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
-            b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g, feed_g, omega,
-            cutting, carve, g.density, g.swept, g.labels, self.materials.us,
-            self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
-            g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
-            g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
-            self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
-            self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
-            self._stamp)
+        rv = self._revolved
+        if rv is not None:
+            removed = self._tick_revolved(rv, centre_g, axis_g, feed_g, omega, cutting, carve)
+        else:
+            removed = bone_tick(
+                b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
+                b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
+                b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g, feed_g, omega,
+                cutting, carve, g.density, g.swept, g.labels, self.materials.us,
+                self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
+                g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
+                g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
+                self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
+                self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
+                self._stamp, self.path.ring, self.path.meta, self.path.candidates)
         if removed:
             g.version += 1
         if shared is not None and carve:
@@ -308,6 +401,22 @@ class BoneEngine:
             self._previous[:] = centre_g
         self.ticks += 1
         return removed
+
+    def _tick_revolved(self, rv: RevolvedTables, centre_g: np.ndarray, axis_g: np.ndarray,
+                       feed_g: np.ndarray, omega: float, cutting: bool, carve: bool) -> bool:
+        """``bone_tick_revolved`` with this engine's buffers (see :meth:`step_raw`)."""
+        r = rv.grid
+        g = self.grid
+        return bone_tick_revolved(
+            r.elem, r.ds, r.sub, r.ds_sub, r.cos_phi, r.sin_phi, r.d_phi, r.cos_sub_p,
+            r.sin_sub_p, rv.corners, rv.cos_pv, rv.sin_pv, rv.profile, rv.bounds, rv.geo,
+            centre_g, axis_g, feed_g, omega, cutting, carve, rv.normal_ratio, rv.edge_ratio,
+            rv.material_k, g.density, g.swept, g.labels, self.materials.us,
+            self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
+            g.brick_version, self._brick_forbidden, g.spacing_mm, g.version + 1,
+            self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
+            rv.shaft_base, self._removed_tick, self._removed_total, self.touch, self._touched,
+            rv.vert, self._acc, self.out, self.shaft_out, self._cache, self._stamp)
 
     def step(
         self,
@@ -401,4 +510,12 @@ class BoneEngine:
         unit = np.array([0.0, 0.0, 1.0])
         self.step_raw(far, unit, unit, self.params.min_cutting_rpm + 1.0, carve=False)
         self.ticks -= 1
+        # The other burrs' tick too (a tool change mid-stream must not compile): the current
+        # one's tables, or a small stand-in's of the same types.
+        rv = self._revolved
+        if rv is None:
+            rv = RevolvedTables.build(Burr(Sphere(self._params.radius_mm), _WARM_CUTTER),
+                                      self._params.k, 8, self.burr.refine)
+        self._stamp += 1
+        self._tick_revolved(rv, far, unit, unit, 1.0, True, False)
 

@@ -22,6 +22,19 @@ from .voxels import cache_origin, sample_bone, sphere_reach
 #: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
 #: the groove the burr is ploughing) by a few per cent, where the corner mean is exact enough.
 SMOOTH_SPREAD = 0.25
+#: Between these spreads an element is integrated both ways and the two blended smoothly: a
+#: switch at SMOOTH_SPREAD stepped the force by the two rules' difference whenever a corner
+#: crossed it (plunges: force against depth fell by up to 3 % and removal by 12 % in steps).
+BLEND_SPREAD_LO = 0.2
+BLEND_SPREAD_HI = 0.3
+#: The surface normal is −(G·|G| + FALLBACK·N), G = Σ w·∇ρ over the patches the original
+#: surface crosses (mm), N = Σ area·n over the patches in bone (mm²): the density gradient
+#: wherever the surface crosses the cutting zone, fading continuously into the in-bone
+#: normals' mean as it leaves it, instead of switching to it only when no patch is crossed
+#: (a few patches left near the zone's edge gave a noisy gradient: the normal force jumped by
+#: 45 % in plunges on an oblique grid). Against a groove's G of a few mm the fallback's part
+#: is ~1e-7.
+FALLBACK = 5e-6
 #: Corner markers between the two sampling levels (real fractions are in [0, 1]).
 PENDING = -1.0
 UNNEEDED = -2.0
@@ -31,7 +44,7 @@ UNNEEDED = -2.0
 def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
                sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
                cutting, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
-               vert, acc, out, cache, tick):
+               vert, acc, out, cache, tick, cand):
     """Cutting force of the burr against the voxel bone, in the grid frame.
 
     Args:
@@ -44,6 +57,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
         vert: float64 scratch of shape (n_theta + 1, n_phi, 3) (corner samples).
         acc: (N_ACC,) scratch; out: (N_OUT,) result (``model.kernels.OUT_*``, grid frame).
         cache, tick: the tick's coverage cache (``voxels.cached_coverage``).
+        cand: the burr's path near it, with its header (``history.history_candidates``).
     """
     for n in range(N_ACC):
         acc[n] = 0.0
@@ -60,6 +74,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
     v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
     has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
+    feed_speed = math.sqrt(v1 * v1 + v2 * v2 + v3 * v3)
+    has_cut = cutting and has_feed
     sample_all = not (cutting and has_feed)  # contact needs every element
     abs_omega = abs(omega)
     spin_sign = 1.0 if omega >= 0.0 else -1.0
@@ -71,27 +87,16 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     n_phi = cos_p.shape[0]
     m = cos_sub_t.shape[0]
     m2 = float(m * m)
+    # Half-sides of a sub-element along θ and (per sin θ) along φ, mm: the patch the path's
+    # share is taken over (``history.history_share``).
+    half_t = 0.5 * radius * d_theta / m
+    half_p = 0.5 * radius * d_phi / m
     # Pass 1: sample the bone once at every element corner that an evaluated element needs,
     # in two levels: first the corners with even (j, k) (and the last ring), then the others
     # only where their coarse neighbours differ. Bone (or air) that is uniform over a coarse
     # cell, most of the burr in a cut, costs a quarter of the samples. Until pass 1c a corner
     # holds PENDING or UNNEEDED in channel 0, and channel 2 of element rows the facing flags.
-    if not sample_all:
-        for j in range(n_theta):
-            st = sin_t[j]
-            ct3 = cos_t[j] * v3
-            for k in range(n_phi):
-                facing = st * (v1 * cos_p[k] + v2 * sin_p[k]) + ct3 > 0.0
-                vert[j, k, 2] = 1.0 if facing else 0.0
-    for j in range(n_theta + 1):
-        ja = max(j - 1, 0)
-        jb = min(j, n_theta - 1)
-        for k in range(n_phi):
-            # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
-            km = k - 1 if k > 0 else n_phi - 1
-            needed = sample_all or (vert[ja, km, 2] + vert[ja, k, 2] + vert[jb, km, 2]
-                                    + vert[jb, k, 2]) > 0.0
-            vert[j, k, 0] = PENDING if needed else UNNEEDED
+    mark_needed(vert, sin_t, cos_t, cos_p, sin_p, v1, v2, v3, sample_all)
     for j in range(n_theta + 1):
         pole = j == 0 or j == n_theta
         if not (pole or (j & 1) == 0):
@@ -107,47 +112,20 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                 _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                                swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius,
                                e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2,
-                               r_out2, cache, o0, o1, o2, tick)
-    # Pass 1b: the fine corners. Pass 1c: the unneeded ones read as no bone.
+                               r_out2, cache, o0, o1, o2, tick, cand,
+                               half_t, half_p)
+    # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled.
+    # Pass 1c: the unneeded ones read as no bone.
+    fill_uniform_fine(vert, n_theta, n_phi)
     for j in range(n_theta + 1):
-        jm = j - 1 if (j & 1) == 1 and j < n_theta else j
-        jp = j + 1 if (j & 1) == 1 and j < n_theta else j
         for k in range(n_phi):
             if vert[j, k, 0] != PENDING:
-                continue
-            if (k & 1) == 1:
-                km = k - 1
-                kp = k + 1 if k + 1 < n_phi else 0
-            else:
-                km = k
-                kp = k
-            # Bone uniform over the coarse cell (all of its corners sampled and identical):
-            # so is this corner. Air is sampled all the same: bone a coarse cell's corners
-            # miss can reach the stencil between them, and air samples are cheap.
-            g = vert[jm, km, 0]
-            uniform = (g > 0.0 and vert[jm, kp, 0] == g and vert[jp, km, 0] == g
-                       and vert[jp, kp, 0] == g)
-            if uniform:
-                u = vert[jm, km, 1]
-                w = vert[jm, km, 2]
-                uniform = (vert[jm, kp, 1] == u and vert[jp, km, 1] == u and vert[jp, kp, 1] == u
-                           and vert[jm, kp, 2] == w and vert[jp, km, 2] == w
-                           and vert[jp, kp, 2] == w)
-            if uniform:
-                vert[j, k, 0] = g
-                vert[j, k, 1] = vert[jm, km, 1]
-                vert[j, k, 2] = vert[jm, km, 2]
                 continue
             _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                            swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius, e1x,
                            e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2, r_out2,
-                           cache, o0, o1, o2, tick)
-    for j in range(n_theta + 1):
-        for k in range(n_phi):
-            if vert[j, k, 0] == UNNEEDED:
-                vert[j, k, 0] = 0.0
-                vert[j, k, 1] = 0.0
-                vert[j, k, 2] = 0.0
+                           cache, o0, o1, o2, tick, cand, half_t, half_p)
+    clear_unneeded(vert, n_theta + 1, n_phi)
     # Outward surface normal: from the density gradient where the bone's surface crosses the
     # burr; failing that, against the mean normal of the elements in bone.
     gsx = 0.0
@@ -177,10 +155,17 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             if hi <= 0.0:
                 continue
             lo = min(min(b00, b10), min(b01, b11))
-            if hi - lo <= SMOOTH_SPREAD:
+            refined = 1.0  # the sub-elements' share of this element
+            if hi - lo < BLEND_SPREAD_HI:
+                refined = 0.0
+                if hi - lo > BLEND_SPREAD_LO:
+                    x = (hi - lo - BLEND_SPREAD_LO) / (BLEND_SPREAD_HI - BLEND_SPREAD_LO)
+                    refined = x * x * (3.0 - 2.0 * x)
+            count_before = acc[8]
+            if refined < 1.0:
                 # The bone varies little across the element: the corner mean (trapezoid rule)
                 # is its integral.
-                w_area = area_unit * st
+                w_area = area_unit * st * (1.0 - refined)
                 area = w_area * 0.25 * (b00 + b10 + b01 + b11)
                 acc[11] += area
                 nsum1 += area * st * cp
@@ -191,12 +176,12 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                                    + vert[j + 1, k1, 1])
                     usk_f = 0.25 * (vert[j, k, 2] + vert[j + 1, k, 2] + vert[j, k1, 2]
                                     + vert[j + 1, k1, 2])
-                    scale = w_unit * vn
+                    scale = w_unit * vn * (1.0 - refined)
                     accumulate_forces(acc, scale * us_f, scale * usk_f, area, vn, st, ct, cp,
                                       sp, abs_omega * radius * st, spin_sign, radius)
-                continue
+                if refined == 0.0:
+                    continue
             # The bone's surface crosses this element: integrate it on m×m sub-elements.
-            count_before = acc[8]
             for a in range(m):
                 ct2 = ct * cos_sub_t[a] - st * sin_sub_t[a]
                 st2 = st * cos_sub_t[a] + ct * sin_sub_t[a]
@@ -208,60 +193,157 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                     px = cx + radius * (n1 * e1x + n2 * e2x + ct2 * e3x)
                     py = cy + radius * (n1 * e1y + n2 * e2y + ct2 * e3y)
                     pz = cz + radius * (n1 * e1z + n2 * e2z + ct2 * e3z)
+                    # The sub-element's half-sides along θ and φ (for the path's share).
+                    h2 = half_p * st2
                     frac, us_f, usk_f, gx, gy, gz = sample_bone(
                         density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
                         hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1,
-                        o2, tick)
+                        o2, tick, cand,
+                        half_t * (ct2 * cp2 * e1x + ct2 * sp2 * e2x - st2 * e3x),
+                        half_t * (ct2 * cp2 * e1y + ct2 * sp2 * e2y - st2 * e3y),
+                        half_t * (ct2 * cp2 * e1z + ct2 * sp2 * e2z - st2 * e3z),
+                        h2 * (cp2 * e2x - sp2 * e1x), h2 * (cp2 * e2y - sp2 * e1y),
+                        h2 * (cp2 * e2z - sp2 * e1z))
                     if frac <= 0.0:
                         continue
-                    w_area = area_unit * st2 / m2
+                    w_area = area_unit * st2 / m2 * refined
                     area = w_area * frac
                     acc[11] += area
                     nsum1 += area * n1
                     nsum2 += area * n2
                     nsum3 += area * ct2
-                    gsx += w_area * gx
-                    gsy += w_area * gy
-                    gsz += w_area * gz
                     vn2 = n1 * v1 + n2 * v2 + ct2 * v3
+                    # Weighted by how fast the patch cuts: a crossing that slides out of the
+                    # cutting zone (where n·v_f → 0) fades out of the estimate instead of
+                    # leaving it as a few noisy gradients.
+                    w_grad = w_area * (max(vn2, 0.0) / feed_speed if has_cut else 1.0)
+                    gsx += w_grad * gx
+                    gsy += w_grad * gy
+                    gsz += w_grad * gz
                     if cutting and vn2 > 0.0:
-                        scale = w_unit * vn2 / m2
+                        scale = w_unit * vn2 / m2 * refined
                         accumulate_forces(acc, scale * us_f, scale * usk_f, area, vn2, st2, ct2,
                                           cp2, sp2, abs_omega * radius * st2, spin_sign,
                                           radius)
             if acc[8] > count_before:  # a refined element counts once
                 acc[8] = count_before + 1.0
+    # The density grows into the bone: the outward normal is against its gradient.
     g_norm = math.sqrt(gsx * gsx + gsy * gsy + gsz * gsz)
-    if g_norm > 0.0:
-        # The density grows into the bone: the outward normal is against its gradient.
-        acc[12] = -gsx / g_norm
-        acc[13] = -gsy / g_norm
-        acc[14] = -gsz / g_norm
-    else:
-        wx = nsum1 * e1x + nsum2 * e2x + nsum3 * e3x
-        wy = nsum1 * e1y + nsum2 * e2y + nsum3 * e3y
-        wz = nsum1 * e1z + nsum2 * e2z + nsum3 * e3z
-        w_norm = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if w_norm > 0.0:
-            acc[12] = -wx / w_norm
-            acc[13] = -wy / w_norm
-            acc[14] = -wz / w_norm
+    wx = g_norm * gsx + FALLBACK * (nsum1 * e1x + nsum2 * e2x + nsum3 * e3x)
+    wy = g_norm * gsy + FALLBACK * (nsum1 * e1y + nsum2 * e2y + nsum3 * e3y)
+    wz = g_norm * gsz + FALLBACK * (nsum1 * e1z + nsum2 * e2z + nsum3 * e3z)
+    w_norm = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if w_norm > 0.0:
+        acc[12] = -wx / w_norm
+        acc[13] = -wy / w_norm
+        acc[14] = -wz / w_norm
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
 
 
 @njit(cache=True, nogil=True)
 def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
                    brick_bone, cx, cy, cz, radius, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z,
-                   hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick):
+                   hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand,
+                   half_t, half_p):
     """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``."""
     n1 = st * cpv
     n2 = st * spv
     px = cx + radius * (n1 * e1x + n2 * e2x + ct * e3x)
     py = cy + radius * (n1 * e1y + n2 * e2y + ct * e3y)
     pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
+    h2 = half_p * st
     frac, us_f, usk_f, _, _, _ = sample_bone(
         density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-        cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick)
+        cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand,
+        half_t * (ct * cpv * e1x + ct * spv * e2x - st * e3x),
+        half_t * (ct * cpv * e1y + ct * spv * e2y - st * e3y),
+        half_t * (ct * cpv * e1z + ct * spv * e2z - st * e3z),
+        h2 * (cpv * e2x - spv * e1x), h2 * (cpv * e2y - spv * e1y), h2 * (cpv * e2z - spv * e1z))
     vert[j, k, 0] = frac
     vert[j, k, 1] = us_f
     vert[j, k, 2] = usk_f
+
+
+@njit(cache=True, nogil=True)
+def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
+    """Pass 1a of the corner sampling, shared by every burr shape: mark each corner
+    ``vert[j, k, 0]`` PENDING if an element that will be evaluated needs it, else UNNEEDED.
+
+    Args:
+        vert: float64 (n_rows + 1, n_phi, 3) corner samples; channel 2 of the element rows
+            holds the facing flags until the corners are sampled.
+        n_rho, n_z: (n_rows,) the element rows' normal across and along the axis (sin θ,
+            cos θ on the sphere).  cos_p, sin_p: (n_phi,) sector midpoints.
+        v1, v2, v3: the feed in the tool frame, mm/s.  sample_all: every element counts
+            (contact needs them all).
+    """
+    n_rows = n_rho.shape[0]
+    n_phi = cos_p.shape[0]
+    if not sample_all:
+        for j in range(n_rows):
+            st = n_rho[j]
+            ct3 = n_z[j] * v3
+            for k in range(n_phi):
+                facing = st * (v1 * cos_p[k] + v2 * sin_p[k]) + ct3 > 0.0
+                vert[j, k, 2] = 1.0 if facing else 0.0
+    for j in range(n_rows + 1):
+        ja = max(j - 1, 0)
+        jb = min(j, n_rows - 1)
+        for k in range(n_phi):
+            # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
+            km = k - 1 if k > 0 else n_phi - 1
+            needed = sample_all or (vert[ja, km, 2] + vert[ja, k, 2] + vert[jb, km, 2]
+                                    + vert[jb, k, 2]) > 0.0
+            vert[j, k, 0] = PENDING if needed else UNNEEDED
+
+
+@njit(cache=True, nogil=True)
+def fill_uniform_fine(vert, n_rows, n_phi):
+    """Pass 1b of the corner sampling, before any fine corner is sampled: a fine corner still
+    PENDING whose coarse cell holds uniform bone (all of its corners sampled and identical)
+    takes their value; the others stay PENDING, to be sampled. The checks read coarse corners
+    only, so filling all first and sampling the rest after gives the same corners.
+
+    Args:
+        vert: float64 (n_rows + 1, n_phi, 3) corner samples (``mark_needed``), the coarse
+            corners (even j and k, the last ring, rings on the axis) sampled.
+    """
+    for j in range(n_rows + 1):
+        fine_row = (j & 1) == 1 and j < n_rows
+        jm = j - 1 if fine_row else j
+        jp = j + 1 if fine_row else j
+        for k in range(n_phi):
+            if vert[j, k, 0] != PENDING:
+                continue
+            if (k & 1) == 1:
+                km = k - 1
+                kp = k + 1 if k + 1 < n_phi else 0
+            else:
+                km = k
+                kp = k
+            # Air is sampled all the same: bone a coarse cell's corners miss can reach the
+            # stencil between them, and air samples are cheap.
+            g = vert[jm, km, 0]
+            uniform = (g > 0.0 and vert[jm, kp, 0] == g and vert[jp, km, 0] == g
+                       and vert[jp, kp, 0] == g)
+            if uniform:
+                u = vert[jm, km, 1]
+                w = vert[jm, km, 2]
+                uniform = (vert[jm, kp, 1] == u and vert[jp, km, 1] == u and vert[jp, kp, 1] == u
+                           and vert[jm, kp, 2] == w and vert[jp, km, 2] == w
+                           and vert[jp, kp, 2] == w)
+            if uniform:
+                vert[j, k, 0] = g
+                vert[j, k, 1] = vert[jm, km, 1]
+                vert[j, k, 2] = vert[jm, km, 2]
+
+
+@njit(cache=True, nogil=True)
+def clear_unneeded(vert, n_corner_rows, n_phi):
+    """Pass 1c: the corners no evaluated element needs read as no bone."""
+    for j in range(n_corner_rows):
+        for k in range(n_phi):
+            if vert[j, k, 0] == UNNEEDED:
+                vert[j, k, 0] = 0.0
+                vert[j, k, 1] = 0.0
+                vert[j, k, 2] = 0.0

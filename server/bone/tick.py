@@ -12,6 +12,7 @@ from numba import njit
 from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE, carve_sphere
 from .force import cut_voxels
+from .history import history_candidates, history_record
 from .shaft import N_SHAFT, shaft_contact
 
 
@@ -21,8 +22,11 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
               cutting, carve, density, swept, labels, us_tab, usk_tab, forbidden, brick_bone,
               brick_full, brick_version, brick_forbidden, spacing, previous, version_next,
               shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch,
-              touched, vert, acc, out, shaft_out, cache, tick):
-    """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft.
+              touched, vert, acc, out, shaft_out, cache, tick, path_ring, path_meta,
+              path_cand):
+    """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft, then
+    extend the burr's path (``history``: ``path_ring``, ``path_meta``, and ``path_cand`` for
+    this tick's nearby capsules) with this tick's position if it carved.
 
     All vectors are in the grid frame; ``axis`` is the unit tool axis. A burr with no bone
     brick within reach skips the force stage entirely: far from bone a tick costs a few brick
@@ -35,29 +39,44 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
         True if bone was removed (the caller then bumps the bone version).
     """
     carved = carve and cutting
-    for n in range(removed.shape[0]):
-        removed[n] = 0.0
+    clear(removed, removed.shape[0])
     removed_any = carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full,
                                brick_version, brick_forbidden, spacing, centre, previous,
                                radius, carved, version_next, removed, touch, touched, cache,
                                tick)
     if removed_any:
-        for n in range(removed.shape[0]):
-            removed_total[n] += removed[n]
+        add_to(removed_total, removed)
     if touch[TOUCH_NEAR_BONE] != 0.0:
+        # The path's capsules that can hold a sample: the burr's surface plus a stencil.
+        h_max = max(spacing[0], max(spacing[1], spacing[2]))
+        history_candidates(path_ring, path_meta, centre[0], centre[1], centre[2],
+                           radius + 2.0 * h_max, path_cand)
         cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
                    sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed,
                    omega, cutting, density, swept, labels, us_tab, usk_tab,
-                   brick_bone, spacing, vert, acc, out, cache, tick)
+                   brick_bone, spacing, vert, acc, out, cache, tick, path_cand)
     else:
-        for n in range(N_OUT):
-            out[n] = 0.0
-        for n in range(N_ACC):
-            acc[n] = 0.0
+        clear(out, N_OUT)
+        clear(acc, N_ACC)
     if shaft_length > 0.0:
         shaft_contact(density, swept, brick_bone, spacing, centre, axis, radius,
                       shaft_radius, shaft_length, shaft_stiffness, shaft_out)
     else:
-        for n in range(N_SHAFT):
-            shaft_out[n] = 0.0
+        clear(shaft_out, N_SHAFT)
+    history_record(path_ring, path_meta, centre[0], centre[1], centre[2], radius, carved,
+                   min(spacing[0], min(spacing[1], spacing[2])))
     return removed_any
+
+
+@njit(cache=True, nogil=True, inline="always")
+def clear(values, n_values):
+    """Zero the first ``n_values`` of a float64 vector (outputs nothing wrote this tick)."""
+    for n in range(n_values):
+        values[n] = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def add_to(total, part):
+    """total += part, float64 (n,) each (this tick's removal into the running total)."""
+    for n in range(part.shape[0]):
+        total[n] += part[n]

@@ -11,6 +11,7 @@ from numba import njit
 
 from ..model.kernels import box_fraction
 from .bricks import BRICK_MASK, BRICK_SHIFT
+from .history import CAND_COUNT, CAND_MODE, HISTORY_EXACT, history_share
 
 
 @njit(cache=True, nogil=True)
@@ -98,7 +99,8 @@ def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy
 
 @njit(cache=True, nogil=True, inline="always")
 def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick):
+                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand, s1x, s1y,
+                s1z, s2x, s2y, s2z):
     """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
 
     Returns (fraction, us_fraction, usk_fraction, gx, gy, gz):
@@ -106,6 +108,10 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
             bone around p outside the burr that no *other* burr position has swept. What the
             burr at (cx, cy, cz) covers counts as available whether or not this tick carved it:
             it is what the model's elements are cutting (or, below the cutting speed, touching).
+            Where the stencil holds swept voxels, the burr's own path (``history``) decides:
+            ``cand`` holds its capsules near the burr and whether they replace the voxels'
+            availability (``HISTORY_EXACT``) or multiply it; the patch at p is the rectangle
+            spanned by its half-sides s1, s2 (mm, tangent to the burr).
         us_fraction, usk_fraction: fraction weighted by each voxel's Us, Us·K (N/mm²).
         gx, gy, gz: gradient of the original density, 1/mm (points into the bone).
 
@@ -143,8 +149,11 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     scale = 1.0 / 255.0
     if swept_any:
-        scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius,
-                               r_in2, r_out2, density, cache, o0, o1, o2, tick)
+        if cand[0, CAND_MODE] != HISTORY_EXACT:
+            scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz,
+                                   radius, r_in2, r_out2, density, cache, o0, o1, o2, tick)
+        if cand[0, CAND_COUNT] > 0.0 and scale > 0.0:
+            scale *= history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z)
     return (bone * scale, us * scale, usk * scale,
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 

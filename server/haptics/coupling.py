@@ -18,7 +18,27 @@ Each tick, around the one bone-engine call:
    - what does not cut is a rigid obstacle: the burr below the minimum cutting speed and the
      shaft always. A penetration deeper than the contact skin is pushed out along the
      surface normal (a velocity constraint, a fraction of it per tick so that a burr placed
-     deep inside bone comes out over several ticks, not in one jump);
+     deep inside bone comes out over several ticks, not in one jump). A burr wholly inside
+     bone has no way out to push it along (the engine's ŝ is then the direction of a sum of
+     normals that cancel: noise), nor has a shaft sunk past its own axis (its depth stays its
+     radius wherever it moves, so the push would never end and would drag the device with
+     it): both are left free until part of them is out, as a proxy placed inside an
+     obstacle usually is (the burr fades out of the rigid answer from 90 % to 98 % of its
+     sphere in bone, not at a threshold). Then nothing pushes against anything, and nothing
+     is generated;
+   - between the two, across a band of spindle speed above the minimum cutting speed
+     (``transition.cut_weight``: s rises from 0 to 1 as a smooth step), the proxy's velocity
+     is the blend ``v⁺ = s·v_cut + (1 − s)·v_rigid`` of the two answers to the same free
+     velocity. Both are continuous in the state and s is continuous in rpm, so the proxy's
+     step and the force the hand feels are too. The blend stays dissipative: each answer has
+     a bone force doing no positive work on the proxy, ``(v − v_free)·v ≤ 0`` (the cut's by
+     the check below, the rigid projection's with equality), and that set is convex (a ball:
+     ``|v − v_free/2| ≤ |v_free|/2``), so their blend is in it; the push-out out of a
+     penetration is the one active part, bounded by the penetration, and it acts only below
+     the minimum speed: from there on the engine carves what the burr overlaps, and a push
+     out of bone the next carve removes anyway would lift the proxy off the surface to fall
+     back the tick after (a two-tick cycle), so the rigid answer only stops the proxy. The
+     shaft's constraint is linear in v, so it holds for the blend when it holds for both;
    - the force for the hand is the coupling's, ``k·(x_proxy − x_dev) + b·(v_proxy − v_dev)``,
      then the passivity controller, the force clamp and the slew limit.
 
@@ -54,6 +74,7 @@ from .layout import (
     P_PROXY_MASS,
     P_PUSH_OUT,
     P_RATED_PERIOD,
+    P_SHAFT_RADIUS,
     P_SKIN,
     P_TRIAL_RELAX,
     R_B,
@@ -90,6 +111,10 @@ from .passivity import control, observe
 #: Bits of the predict/finish return values.
 PLACED = 1  # the proxy was (re)placed at the device: the engine must forget its last carve
 CLAMPED = 2  # a force limit changed the force
+#: A burr with at least this share of its sphere in bone counts as wholly inside it; from
+#: EMBEDDED_FROM on, its rigid contact fades out toward that.
+EMBEDDED_SHARE = 0.98
+EMBEDDED_FROM = 0.9
 
 
 @njit(cache=True, nogil=True)
@@ -199,9 +224,10 @@ def solve3(m, rhs, out):
 
 
 @njit(cache=True, nogil=True)
-def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch):
+def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, embedded, scratch):
     """The proxy's velocity (into state's S_PROXY_V) with the cut treated implicitly:
-    ``(A·I − J + dt/h·F·ŝᵀ)·v⁺ = A·v_free`` (module docstring). ``scratch``: float64 (12,)."""
+    ``(A·I − J + dt/h·F·ŝᵀ)·v⁺ = A·v_free`` (module docstring); without the depth term for an
+    ``embedded`` burr (no direction makes its cut shallower). ``scratch``: float64 (12,)."""
     a = state[S_A]
     dt = state[S_DT]
     m = scratch[0:9]
@@ -214,7 +240,7 @@ def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch):
     sy = engine_out[OUT_SURFACE_NORMAL + 1]
     sz = engine_out[OUT_SURFACE_NORMAL + 2]
     area = engine_out[OUT_CONTACT_AREA]
-    if area > 0.0 and sx * sx + sy * sy + sz * sz > 0.25:
+    if area > 0.0 and not embedded and sx * sx + sy * sy + sz * sz > 0.25:
         # Leaving the bone along ŝ makes the cut shallower, and the force with it.
         w = dt / max(area / (2.0 * math.pi * radius_mm), params[P_DEPTH_FLOOR])
         for r in range(3):
@@ -248,10 +274,11 @@ def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch):
 
 
 @njit(cache=True, nogil=True)
-def push_out(state, nx, ny, nz, depth_mm, params):
+def push_out(state, nx, ny, nz, depth_mm, params, push_scale=1.0):
     """Constrain the proxy velocity (state's S_PROXY_V) so that a penetration ``depth_mm``
-    along the unit outward normal n shrinks to the skin: n·v ≥ rate."""
-    rate = params[P_PUSH_OUT] * max(0.0, depth_mm - params[P_SKIN]) / state[S_DT]
+    along the unit outward normal n shrinks to the skin: n·v ≥ rate (× ``push_scale``)."""
+    rate = (push_scale * params[P_PUSH_OUT] * max(0.0, depth_mm - params[P_SKIN])
+            / state[S_DT])
     g = nx * state[S_PROXY_V] + ny * state[S_PROXY_V + 1] + nz * state[S_PROXY_V + 2]
     if g < rate:
         state[S_PROXY_V] += (rate - g) * nx
@@ -260,7 +287,36 @@ def push_out(state, nx, ny, nz, depth_mm, params):
 
 
 @njit(cache=True, nogil=True)
-def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radius_mm, result,
+def embedded_weight(area_mm2, radius_mm):
+    """0 for a burr with at most EMBEDDED_FROM of its sphere in bone, 1 from EMBEDDED_SHARE
+    on (wholly inside: no way out), a smooth step between."""
+    share = area_mm2 / (4.0 * math.pi * radius_mm * radius_mm)
+    if share <= EMBEDDED_FROM:
+        return 0.0
+    if share >= EMBEDDED_SHARE:
+        return 1.0
+    u = (share - EMBEDDED_FROM) / (EMBEDDED_SHARE - EMBEDDED_FROM)
+    return u * u * (3.0 - 2.0 * u)
+
+
+@njit(cache=True, nogil=True)
+def rigid_normal(engine_out, radius_mm, embedded):
+    """The burr's rigid contact: (nx, ny, nz, depth_mm), the unit outward normal and the
+    depth of the cap in bone; depth 0 when there is none, or no way out (``embedded``)."""
+    area = engine_out[OUT_CONTACT_AREA]
+    if area <= 0.0 or embedded:
+        return 0.0, 0.0, 0.0, 0.0
+    bx = engine_out[OUT_SURFACE_NORMAL]
+    by = engine_out[OUT_SURFACE_NORMAL + 1]
+    bz = engine_out[OUT_SURFACE_NORMAL + 2]
+    norm = math.sqrt(bx * bx + by * by + bz * bz)
+    if norm <= 0.5:
+        return 0.0, 0.0, 0.0, 0.0
+    return bx / norm, by / norm, bz / norm, area / (2.0 * math.pi * radius_mm)
+
+
+@njit(cache=True, nogil=True)
+def coupled_finish(state, params, engine_out, jacobian, shaft_out, cut_weight, radius_mm, result,
                    scratch):
     """Step 2 of a coupled tick, after the bone engine ran at the proxy with the free
     velocity: the proxy's implicit step, its contacts, the coupling force, passivity and
@@ -270,7 +326,8 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
         engine_out: float64 (N_OUT,) the engine's result (``model.kernels.OUT_*``, grid frame).
         jacobian: float64 (9,) ∂F/∂v of the cut (``BoneEngine.jacobian``).
         shaft_out: float64 (N_SHAFT,) the shaft's (``bone.shaft.SHAFT_*``).
-        cutting: the spindle turns fast enough to cut (else the bone is a rigid obstacle).
+        cut_weight: s ∈ [0, 1], the cut's share (``transition.cut_weight``): 0 the bone is a
+            rigid obstacle (the spindle is too slow to cut), 1 it is cut.
         radius_mm: the burr's radius.
         result: float64 (N_RESULT,) receives the ``layout.R_*`` values.
         scratch: float64 (12,) work space.
@@ -280,50 +337,62 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cutting, radi
     """
     a = state[S_A]
     dt = state[S_DT]
+    s = min(max(cut_weight, 0.0), 1.0)
     f2 = (engine_out[OUT_FORCE] ** 2 + engine_out[OUT_FORCE + 1] ** 2
           + engine_out[OUT_FORCE + 2] ** 2)
-    if cutting and f2 > 0.0:
-        cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, scratch)
-        state[S_CUT] = 1.0
-    else:
-        for i in range(3):
-            state[S_PROXY_V + i] = state[S_FREE + i]
-        state[S_CUT] = 0.0
-    # The force the bone put on the proxy, and its share of the trial's (power, torque).
-    fb2 = 0.0
-    for i in range(3):
-        fb = a * (state[S_PROXY_V + i] - state[S_FREE + i])
-        result[R_CUT + i] = fb
-        fb2 += fb * fb
-    lam = math.sqrt(fb2 / f2) if f2 > 0.0 else 0.0
-    # Rigid contacts: the burr when it does not cut, the shaft always.
-    bx = by = bz = burr_depth = 0.0
-    area = engine_out[OUT_CONTACT_AREA]
-    if not cutting and area > 0.0:
-        bx = engine_out[OUT_SURFACE_NORMAL]
-        by = engine_out[OUT_SURFACE_NORMAL + 1]
-        bz = engine_out[OUT_SURFACE_NORMAL + 2]
-        norm = math.sqrt(bx * bx + by * by + bz * bz)
-        if norm > 0.5:  # an embedded burr has no outward direction: left free
-            bx /= norm
-            by /= norm
-            bz /= norm
-            burr_depth = area / (2.0 * math.pi * radius_mm)
+    embedded = embedded_weight(engine_out[OUT_CONTACT_AREA], radius_mm) >= 1.0
+    # The shaft: always rigid, unless sunk past its axis (module docstring).
     hx = shaft_out[SHAFT_FORCE]
     hy = shaft_out[SHAFT_FORCE + 1]
     hz = shaft_out[SHAFT_FORCE + 2]
     shaft_norm = math.sqrt(hx * hx + hy * hy + hz * hz)
     shaft_depth = shaft_out[SHAFT_DEPTH] if shaft_norm > 0.0 else 0.0
-    if shaft_norm > 0.0:
+    shaft_r = params[P_SHAFT_RADIUS]
+    # Voxel centres within a voxel of the axis: the depth has saturated at the radius.
+    if embedded or (shaft_r > 0.0 and shaft_depth >= shaft_r - 2.0 * params[P_DEPTH_FLOOR]):
+        shaft_depth = 0.0
+    if shaft_depth > 0.0:
         hx /= shaft_norm
         hy /= shaft_norm
         hz /= shaft_norm
-    if burr_depth > 0.0 or shaft_depth > 0.0:
+    # The cut's answer (the free velocity when nothing cuts), then the shaft on it.
+    if s > 0.0 and f2 > 0.0:
+        cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, embedded, scratch)
+        state[S_CUT] = 1.0
+    else:
+        for i in range(3):
+            state[S_PROXY_V + i] = state[S_FREE + i]
+        state[S_CUT] = 0.0
+    # The bone force the cut put on the proxy (its share s of it), and its share of the
+    # trial's (power, torque).
+    fb2 = 0.0
+    for i in range(3):
+        fb = s * a * (state[S_PROXY_V + i] - state[S_FREE + i])
+        result[R_CUT + i] = fb
+        fb2 += fb * fb
+    lam = math.sqrt(fb2 / f2) if f2 > 0.0 else 0.0
+    if shaft_depth > 0.0:
+        push_out(state, hx, hy, hz, shaft_depth, params)
+    bx, by, bz, burr_depth = rigid_normal(engine_out, radius_mm, embedded)
+    if s < 1.0 and burr_depth > 0.0:
+        # The rigid answer to the same free velocity, blended in by 1 − s.
+        cut_v = scratch[0:3]
+        for i in range(3):
+            cut_v[i] = state[S_PROXY_V + i]
+            state[S_PROXY_V + i] = state[S_FREE + i]
+        # Where the engine carves, the bone a penetration reaches is gone the next tick: a
+        # push out of it would lift the proxy off the surface, let it fall back the tick
+        # after, and so on (a two-tick cycle); the rigid answer then only stops the proxy.
+        push = 1.0 if s <= 0.0 and f2 <= 0.0 else 0.0
         for _ in range(4):  # Gauss–Seidel over the two constraints
-            if burr_depth > 0.0:
-                push_out(state, bx, by, bz, burr_depth, params)
+            push_out(state, bx, by, bz, burr_depth, params, push)
             if shaft_depth > 0.0:
                 push_out(state, hx, hy, hz, shaft_depth, params)
+        # A burr almost wholly in bone fades out of the rigid answer, not at a threshold.
+        e = embedded_weight(engine_out[OUT_CONTACT_AREA], radius_mm)
+        for i in range(3):
+            rigid = e * cut_v[i] + (1.0 - e) * state[S_PROXY_V + i]
+            state[S_PROXY_V + i] = s * cut_v[i] + (1.0 - s) * rigid
     k = state[S_K]
     b = state[S_B]
     force = result[R_FORCE:R_FORCE + 3]

@@ -41,7 +41,8 @@ P_MAX_SPEED = 8  # a proxy faster than this is re-placed at the device, mm/s
 P_PUSH_OUT = 9  # fraction of a penetration resolved per tick (0, 1]
 P_PERIOD_GAIN = 10  # smoothing gain of the packet interval
 P_TRIAL_RELAX = 11  # how far the evaluated feed moves toward each tick's guess, (0, 1]
-N_PARAMS = 12
+P_SHAFT_RADIUS = 12  # the shaft's radius, mm (0: unknown; set by the session from its engine)
+N_PARAMS = 13
 
 # Result of a coupled tick (``HapticOutput.finish``).
 R_FORCE = 0  # [0:3] force for the hand (device), N

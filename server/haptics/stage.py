@@ -90,6 +90,6 @@ def warm_up() -> None:
                   stage.noise_mm, stage.window_s, stage.device_v)
     coupled_predict(stage.state, stage.params, stage.device_p, stage.device_v, 1e-3, True,
                     stage.centre, stage.feed)
-    coupled_finish(stage.state, stage.params, out, np.zeros(9), shaft, True, 2.0, stage.result,
+    coupled_finish(stage.state, stage.params, out, np.zeros(9), shaft, 1.0, 2.0, stage.result,
                    stage.scratch)
     raw_limits(stage.state, stage.params, stage.force, 1e-3)

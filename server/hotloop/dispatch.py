@@ -90,6 +90,9 @@ class Dispatcher:
         the warm-up used is ended; ``next_stream`` is as it was)."""
         wire.warm_up()
         for session in self.sessions.values():
+            # Every burr's tick, the other shapes' too: a tool change mid-stream must not
+            # stall the loop compiling (or loading) kernels.
+            session.engine.warm_up()
             first = session.next_stream
             far = session.transform.point_out((-1e5, -1e5, -1e5))
             pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),

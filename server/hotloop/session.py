@@ -32,8 +32,9 @@ from ..bone.engine import BoneEngine
 from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from ..haptics.config import HapticsConfig
 from ..haptics.coupling import CLAMPED, PLACED, coupled_finish, coupled_predict, raw_limits
-from ..haptics.layout import S_PERIOD
+from ..haptics.layout import P_SHAFT_RADIUS, S_PERIOD
 from ..haptics.stage import HapticStage
+from ..haptics.transition import cut_weight
 from ..model.kernels import (
     OUT_COMPONENTS,
     OUT_CONTACT_AREA,
@@ -295,6 +296,9 @@ class Session:
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
         self._radius_mm = self.engine.params.radius_mm
         self._k[K_MIN_RPM] = self._min_cutting_rpm
+        # The coupled output's transition band above the minimum cutting speed, rpm.
+        self._cutting_band_rpm = self._min_cutting_rpm * self.engine.params.cutting_band
+        self.haptics.params[P_SHAFT_RADIUS] = self.engine.shaft.radius_mm
 
     def end_stream(self) -> None:
         """End the open stream and forget any offer: the client's next POSE gets
@@ -494,7 +498,9 @@ class Session:
                 # magnitude; the hand feels the coupling, which also carries the shaft and
                 # the rigid contacts.
                 if coupled_finish(hs.state, hs.params, engine.out, engine.jacobian,
-                                  engine.shaft_out, abs(rpm) >= self._min_cutting_rpm,
+                                  engine.shaft_out,
+                                  cut_weight(abs(rpm), self._min_cutting_rpm,
+                                             self._cutting_band_rpm),
                                   self._radius_mm, hs.result, hs.scratch) & CLAMPED:
                     status |= STATUS_CLAMPED
                 r = hs.result.tolist()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from itertools import pairwise
+from typing import NamedTuple
 
 import numpy as np
 from scipy.integrate import quad_vec
@@ -48,6 +49,58 @@ def _basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return e1, e2, e3
 
 
+class FlatFrame(NamedTuple):
+    """A pose against a flat half-space, in the tool frame of ``_basis``.
+
+    Attributes:
+        e1, e2, e3: (3,) the basis, e3 along the axis.  v: (3,) the feed, mm/s.
+        omega_vec: (3,) the spin Ω, rad/s (Ω = −ω·a for forward spin, params.spin_sign).
+        s, v_tool: the unit outward surface normal and the feed (mm/s) on (e1, e2, e3).
+        depth: s·(surface point − centre), mm: a point x of the burr is in bone where
+            s·(x − centre) < depth.
+    """
+
+    e1: np.ndarray
+    e2: np.ndarray
+    e3: np.ndarray
+    v: np.ndarray
+    omega_vec: np.ndarray
+    s: tuple[float, float, float]
+    v_tool: tuple[float, float, float]
+    depth: float
+
+
+def flat_frame(params: CuttingParams, centre_mm: np.ndarray, axis: np.ndarray,
+               feed_mm_s: np.ndarray, rpm: float, surface_point_mm: np.ndarray,
+               surface_normal: np.ndarray) -> FlatFrame:
+    """The references' common set-up of a pose (``centre_mm`` the burr's reference centre).
+    ValueError if the spindle does not turn."""
+    omega = params.spin_sign * rpm * 2.0 * math.pi / 60.0
+    if omega == 0.0:
+        raise ValueError("the reference needs a turning spindle")
+    s = np.asarray(surface_normal, float) / np.linalg.norm(surface_normal)
+    centre = np.asarray(centre_mm, float)
+    v = np.asarray(feed_mm_s, float)
+    e1, e2, e3 = _basis(np.asarray(axis, float))
+    depth = float(s @ (np.asarray(surface_point_mm, float) - centre))
+    return FlatFrame(e1, e2, e3, v, omega * e3,
+                     (float(s @ e1), float(s @ e2), float(s @ e3)),
+                     (float(v @ e1), float(v @ e2), float(v @ e3)), depth)
+
+
+def result_from_totals(total: np.ndarray) -> ReferenceResult:
+    """The result from integrated totals laid out as force (3, N), torque (3, N·mm), power
+    (N·mm/s), removal rate (mm³/s), cut area (mm²), cut area × speed (mm²·mm/s)."""
+    cut_area = float(total[8])
+    return ReferenceResult(
+        force_N=total[0:3],
+        torque_Nmm=total[3:6],
+        power_W=float(total[6]) * 1e-3,
+        removed_mm3_s=float(total[7]),
+        mean_speed_m_s=float(total[9]) / cut_area * 1e-3 if cut_area > 0 else 0.0,
+    )
+
+
 def _sinusoid_roots(p: float, q: float, level: float) -> list[float]:
     """θ ∈ (0, π) where p·sin θ + q·cos θ = level."""
     amp = math.hypot(p, q)
@@ -76,17 +129,11 @@ def reference_flat(
 ) -> ReferenceResult:
     """Converged model values for a burr against the half-space behind ``surface_normal``."""
     radius = params.radius_mm
-    omega = params.spin_sign * rpm * 2.0 * math.pi / 60.0
-    if omega == 0.0:
-        raise ValueError("the reference needs a turning spindle")
-    s = np.asarray(surface_normal, float) / np.linalg.norm(surface_normal)
-    centre = np.asarray(centre_mm, float)
-    v = np.asarray(feed_mm_s, float)
-    e1, e2, e3 = _basis(np.asarray(axis, float))
-    level = float(s @ (np.asarray(surface_point_mm, float) - centre)) / radius  # s·n < level
-    s1, s2, s3 = float(s @ e1), float(s @ e2), float(s @ e3)
-    v1, v2, v3 = float(v @ e1), float(v @ e2), float(v @ e3)
-    omega_vec = omega * e3  # Ω = −ω·a for forward spin (params.spin_sign)
+    f = flat_frame(params, centre_mm, axis, feed_mm_s, rpm, surface_point_mm, surface_normal)
+    e1, e2, e3, v, omega_vec = f.e1, f.e2, f.e3, f.v, f.omega_vec
+    s1, s2, s3 = f.s
+    v1, v2, v3 = f.v_tool
+    level = f.depth / radius  # s·n < level
     k = params.k
 
     def at_phi(phi: float) -> np.ndarray:
@@ -124,14 +171,7 @@ def reference_flat(
         return total
 
     total, _err = quad_vec(at_phi, 0.0, 2.0 * math.pi, epsrel=epsrel, epsabs=1e-13, limit=20000)
-    cut_area = float(total[8])
-    return ReferenceResult(
-        force_N=total[0:3],
-        torque_Nmm=total[3:6],
-        power_W=float(total[6]) * 1e-3,
-        removed_mm3_s=float(total[7]),
-        mean_speed_m_s=float(total[9]) / cut_area * 1e-3 if cut_area > 0 else 0.0,
-    )
+    return result_from_totals(total)
 
 
 def reference_case(case: CuttingCase, params: CuttingParams) -> ReferenceResult:
@@ -141,3 +181,11 @@ def reference_case(case: CuttingCase, params: CuttingParams) -> ReferenceResult:
             f"case radius {case.radius_mm} mm differs from params radius {params.radius_mm} mm"
         )
     return reference_flat(params, case.centre_mm, case.axis, case.feed_velocity_mm_s, case.rpm)
+
+
+def plunge_removal_mm3_s(radius_mm: float, depth_mm: float, feed_mm_s: float) -> float:
+    """Removal rate of a burr plunging straight into a flat surface, ``depth_mm`` deep, at
+    ``feed_mm_s``: every element of the cut cap faces the feed, so it sweeps the cap's
+    projected disc, v·π·(2Rh − h²) (mm³/s); beyond h = R the burr's equatorial disc, v·π·R²."""
+    h = min(max(depth_mm, 0.0), radius_mm)
+    return feed_mm_s * math.pi * (2.0 * radius_mm * h - h * h)

@@ -46,3 +46,17 @@ def vibration(
         return 0.0, 0.0
     burring = params.g * abs(resistive_force_N)
     return math.hypot(params.fd_N, burring), abs(rpm) / 60.0 * params.harmonic
+
+
+#: The most flutes a fluted burr may have.
+MAX_FLUTES = 64
+
+
+def flute_harmonic(n_flutes: int) -> float:
+    """The vibration harmonic of a fluted burr: each of its ``n_flutes`` edges strikes the bone
+    once a turn, so the dominant frequency is the tooth-passing rate n_flutes × |rpm|/60 (for
+    ``VibrationParams.harmonic``). Abrasive burrs keep the default harmonic 1."""
+    if isinstance(n_flutes, bool) or not isinstance(n_flutes, int) or not (
+            1 <= n_flutes <= MAX_FLUTES):
+        raise ValueError(f"n_flutes must be an integer in [1, {MAX_FLUTES}], got {n_flutes!r}")
+    return float(n_flutes)

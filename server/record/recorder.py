@@ -92,7 +92,7 @@ def session_meta(session: Session, bone_name: str = "") -> dict[str, Any]:
         "placement_orientation": [float(x) for x in config.placement_orientation],
         "model": bool(config.model),
         "carve": bool(config.carve),
-        "params": asdict(engine.params),
+        "params": engine.params.to_dict(),
         "shaft": asdict(engine.shaft),
         "burr": {"n_theta": n_theta, "n_phi": n_phi, "refine": refine},
         "materials": [{"label": label, "name": m.name, "us_n_mm2": m.us_n_mm2, "k": m.k,
@@ -104,6 +104,7 @@ def session_meta(session: Session, bone_name: str = "") -> dict[str, Any]:
         "spacing_mm": engine.grid.spacing_mm.tolist(),
         "carve_from_g": None if np.isnan(previous).any()
         else [json_float(x) for x in previous],
+        "burr_path": engine.path.state(),
         "touching_labels": sorted(int(x) for x in engine._touching),
         "engine_ticks": int(engine.ticks),
     }

@@ -408,7 +408,7 @@ def _engine(rec: Recording, bone: Bone, table: MaterialTable,
         if shape is not None and tuple(shape) != tuple(bone.grid.shape):
             raise RecordingError(rec.path, f"the snapshot's grid is {bone.grid.shape}, the "
                                            f"recording's {tuple(shape)}")
-        params = CuttingParams(**meta["params"])
+        params = CuttingParams.from_dict(meta["params"])
         shaft = ShaftParams(**meta["shaft"])
         burr = meta["burr"]
         engine = BoneEngine(bone.grid, table, params, shaft, n_theta=int(burr["n_theta"]),
@@ -417,6 +417,8 @@ def _engine(rec: Recording, bone: Bone, table: MaterialTable,
         carve_from = meta.get("carve_from_g")
         if carve_from is not None:
             engine._previous[:] = [float(x) for x in carve_from]
+        if meta.get("burr_path") is not None:  # older recordings: the voxels alone
+            engine.path.restore(meta["burr_path"])
         engine._touching = frozenset(int(x) for x in meta.get("touching_labels", ()))
         tf = frames.Transform(frames.frame(meta["frame"]),
                               tuple(meta.get("placement_position", (0.0, 0.0, 0.0))),
