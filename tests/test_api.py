@@ -214,6 +214,7 @@ def test_doubling_us_doubles_the_force(stack, api):
     ({"primary_material": 9}, "no material with label 9"),
     ({"bogus": 1}, "extra"),
     ({"burr": {"shape": {"kind": "cone", "radius_mm": 1.0}}}, "kind must be one of"),
+    ({"burr": {"shape": {"kind": []}}}, "kind must be one of"),
     ({"burr": {"shape": {"kind": "cylinder", "radius_mm": 1.0}}}, "missing ['length_mm']"),
     ({"burr": {"shape": {"kind": "sphere", "radius_mm": 2.0},
                "cutter": {"kind": "fluted", "n_flutes": 0}}}, "n_flutes"),
@@ -462,6 +463,16 @@ def test_a_tool_change_mid_stream_keeps_the_stream_and_knows_the_old_groove(stac
         assert all(r.status & STATUS_CUTTING for r in flutes[-50:])
         assert np.linalg.norm(_steady(flutes)) > 0.05
         assert flutes[-1].vibration_frequency_hz == pytest.approx(6 * 60_000 / 60)
+        # Re-sending its radius is harmless; resizing it is a new shape, not radius_mm.
+        assert api.patch(f"/sessions/{sid}/parameters",
+                         json={"radius_mm": 1.5}).status_code == 200
+        r = api.patch(f"/sessions/{sid}/parameters", json={"radius_mm": 1.2})
+        assert r.status_code == 422 and "give its sizes in burr.shape" in r.text
+        # A user's harmonic stays while the cutter does not change.
+        api.patch(f"/sessions/{sid}/parameters", json={"harmonic": 3.0})
+        fluted["shape"]["length_mm"] = 5.0
+        assert api.patch(f"/sessions/{sid}/parameters",
+                         json={"burr": fluted}).json()["harmonic"] == 3.0
         replies = inside + widen + flutes
         assert not any(r.status & STATUS_STALE for r in replies)
         assert c.counters["hellos"] == 1 and c.counters["timeouts"] == 0

@@ -102,3 +102,13 @@ def test_the_path_stores_a_straight_stroke_as_one_segment_and_wraps():
     lo = path.meta[M_UNKNOWN:M_UNKNOWN + 3]
     hi = path.meta[M_UNKNOWN + 3:M_UNKNOWN + 6]
     assert (lo <= hi).all()
+
+
+def test_moving_in_air_leaves_no_path():
+    """Only carving near bone is recorded: a hand wandering above the block at cutting speed
+    must not fill the ring and push the real cuts out of it."""
+    engine = engine_on(False)
+    for i in range(2000):
+        x = 2.0 + 8.0 * abs(np.sin(i * 0.01))
+        engine.step((x, 6.0 + np.cos(i * 0.013), Z + 5.0), UP, (10.0, 0.0, 0.0), RPM)
+    assert engine.path.segments == 0

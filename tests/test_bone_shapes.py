@@ -180,8 +180,13 @@ def test_round_fluted_burr_without_helix_or_rake_is_the_sphere():
 def test_burr_shape_and_set_burr():
     engine = BoneEngine(groove_block(0.2), shaft=ShaftParams(radius_mm=0.5))
     assert engine.burr_shape == Burr(Sphere(2.0), Abrasive())
+    assert engine.contact_radius_mm == 2.0
     engine.set_burr(FLAT)
     assert engine.burr_shape == FLAT and engine.params.radius_mm == 1.0
+    # Contact areas compare with the sphere of the same surface (the coupled output's "wholly
+    # in bone" share): R1 L4 flat ends, 2π·1·4 + 2·π·1² = 10π mm².
+    assert engine.contact_radius_mm == pytest.approx((10.0 * np.pi / (4.0 * np.pi)) ** 0.5,
+                                                     rel=1e-3)
     engine.set_burr(Burr(Sphere(1.5)))
     assert engine.burr_shape == Burr(Sphere(1.5)) and engine.params.radius_mm == 1.5
     assert engine.params.burr is None  # the round abrasive burr: the sphere's own tick

@@ -177,6 +177,8 @@ def _with_burr(params: CuttingParams, p: Parameters) -> CuttingParams:
     if p.radius_mm is None:
         return params
     shape = params.shape
+    if abs(p.radius_mm - params.radius_mm) <= 1e-9:
+        return params  # re-sent as it is (any shape)
     if not isinstance(shape.shape, Sphere):
         raise ValueError(f"radius_mm resizes a round burr; this one is a {shape.shape.kind}: "
                          f"give its sizes in burr.shape")
@@ -591,7 +593,7 @@ class ControlPlane:
                 ("radius_mm", p.shaft_radius_mm), ("length_mm", p.shaft_length_mm),
                 ("stiffness_n_mm3", p.shaft_stiffness_n_mm3)) if v is not None})
             harmonic = p.harmonic
-            if harmonic is None and p.burr is not None:
+            if harmonic is None and params.shape.cutter != session.params.shape.cutter:
                 harmonic = params.shape.cutter.harmonic  # flutes set the tooth frequency
             vibration = replace(session.vibration, **{k: v for k, v in (
                 ("fd_N", p.fd_N), ("g", p.g), ("harmonic", harmonic)) if v is not None})

@@ -278,6 +278,17 @@ class BoneEngine:
             self.forget_last_carve()
 
     @property
+    def contact_radius_mm(self) -> float:
+        """The radius of the sphere with the burr's surface area, mm: what a contact area
+        is compared with (the coupled output's "wholly in bone" share and cap depth). The
+        radius itself for a round burr."""
+        rv = self._revolved
+        if rv is None:
+            return self._params.radius_mm
+        area_mm2 = 2.0 * math.pi * float(np.dot(rv.grid.elem[0], rv.grid.ds))
+        return math.sqrt(area_mm2 / (4.0 * math.pi))
+
+    @property
     def burr_shape(self) -> Burr:
         """The burr cutting now (``params.shape``: a round abrasive burr of
         ``params.radius_mm`` unless :meth:`set_burr` chose another)."""

@@ -63,7 +63,9 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                       shaft_radius, shaft_length, shaft_stiffness, shaft_out)
     else:
         clear(shaft_out, N_SHAFT)
-    history_record(path_ring, path_meta, centre[0], centre[1], centre[2], radius, carved,
+    # Only near bone: a hand wandering in air would fill the ring and push real cuts out.
+    history_record(path_ring, path_meta, centre[0], centre[1], centre[2], radius,
+                   carved and touch[TOUCH_NEAR_BONE] != 0.0,
                    min(spacing[0], min(spacing[1], spacing[2])))
     return removed_any
 

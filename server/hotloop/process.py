@@ -679,11 +679,13 @@ def _set_engine(dispatcher: Dispatcher, lock: threading.Lock, session_id: int,
         new_shaft = shaft if shaft is not None else engine.shaft
         new_params = params if params is not None else engine.params
         check_burr(grid.spacing_mm, new_params, new_shaft)
+        changed = new_shaft != engine.shaft or new_params != engine.params
         if new_shaft != engine.shaft:
             engine.shaft = new_shaft
         if new_params != engine.params:
             engine.params = new_params  # resets the coverage cache and the carve memory
-            session.engine_changed()
+        if changed:
+            session.engine_changed()  # the hot path's copies (the coupling's shaft radius too)
         if materials is not None:
             engine.set_materials(materials, bricks)
         if publish is not None:

@@ -294,7 +294,8 @@ class Session:
         """After the engine's parameters changed: pick up what the hot path caches (the
         stream goes on; only the carve memory is reset by the engine)."""
         self._min_cutting_rpm = self.engine.params.min_cutting_rpm
-        self._radius_mm = self.engine.params.radius_mm
+        # The coupling compares contact areas with a sphere's: one of the burr's surface area.
+        self._radius_mm = self.engine.contact_radius_mm
         self._k[K_MIN_RPM] = self._min_cutting_rpm
         # The coupled output's transition band above the minimum cutting speed, rpm.
         self._cutting_band_rpm = self._min_cutting_rpm * self.engine.params.cutting_band

@@ -139,7 +139,7 @@ class BurrShape:
             raise ValueError(f"a burr shape must be a mapping, got {type(data).__name__}")
         kind = data.get("kind")
         classes = {c.kind: c for c in (Sphere, Cylinder, Barrel)}
-        if kind not in classes:
+        if not isinstance(kind, str) or kind not in classes:
             raise ValueError(f"burr shape kind must be one of {sorted(classes)}, got {kind!r}")
         return classes[kind]._from_fields(data)
 
