@@ -107,7 +107,8 @@ def check_burr(spacing_mm: np.ndarray, params: CuttingParams, shaft: ShaftParams
     check_voxel_size(np.asarray(spacing_mm, dtype=np.float64), params.radius_mm)
     if shaft.length_mm > 0 and shaft.radius_mm >= params.radius_mm:
         raise ValueError(f"the shaft radius {shaft.radius_mm} mm must be smaller than the burr "
-                         f"radius {params.radius_mm} mm")
+                         f"radius {params.radius_mm} mm (set shaft_radius_mm below it, in the "
+                         f"same request as the burr)")
 
 
 @dataclass(frozen=True)
