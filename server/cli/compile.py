@@ -94,12 +94,15 @@ def _bone_files() -> None:
 
 
 def _model() -> None:
-    """The cutting model alone (``experiment``, ``bench model``)."""
+    """The cutting model alone (``experiment``, ``bench model``), round and other burrs."""
     from ..model import CuttingModel, CuttingParams
+    from ..model.revolved import RevolvedModel
+    from ..model.shapes import Burr, Cylinder, Fluted
 
-    model = CuttingModel(CuttingParams())
-    model.evaluate(np.array([0.0, 0.0, 1.5]), np.array([0.0, 0.0, 1.0]),
-                   np.array([1.0, 0.0, 0.0]), 80_000.0)
+    centre, axis = np.array([0.0, 0.0, 1.5]), np.array([0.0, 0.0, 1.0])
+    feed = np.array([1.0, 0.0, 0.0])
+    CuttingModel(CuttingParams()).evaluate(centre, axis, feed, 80_000.0)
+    RevolvedModel(Burr(Cylinder(1.0, 4.0), Fluted(6))).evaluate(centre, axis, feed, 80_000.0)
 
 
 def _device_loop() -> None:
