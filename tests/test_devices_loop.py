@@ -113,9 +113,12 @@ def test_watchdog_zeroes_the_force_when_the_hot_loop_is_killed(tmp_path):
         os.kill(stack.hot.pid, signal.SIGKILL)
         elapsed = _watchdog_time(process)
         assert 0.0 < elapsed <= WATCHDOG_S, elapsed
-        assert not process.status()["live"]
         assert process.status()["counters"]["watchdog_trips"] >= 1
-        assert process.is_alive()  # it waits for the server to come back, force zero
+        # It waited for the server, force zero, and the supervisor's warm spare brings the
+        # stream back (within ~0.05 s of the kill: "not live" is already over by now on a
+        # fast restart, as CI once saw).
+        assert process.is_alive()
+        assert _wait(lambda: process.status()["live"], 20.0), process.status()
     finally:
         if process is not None:
             process.stop()
