@@ -107,7 +107,7 @@ class Parameters(Strict):
         "\"radius_mm\": 1.0, \"length_mm\": 4.0, \"end\": \"round\"}, \"cutter\": "
         "{\"kind\": \"fluted\", \"n_flutes\": 6, \"helix_deg\": 20, \"rake_deg\": 0}}. "
         "Shapes: sphere (radius_mm), cylinder (radius_mm, length_mm, end flat|round), barrel "
-        "(radius_mm at its equator, end_radius_mm, length_mm); cutters: abrasive (default) or "
+        "(equator_radius_mm, end_radius_mm, length_mm); cutters: abrasive (default) or "
         "fluted (n_flutes, helix_deg, rake_deg, friction_deg — not calibrated against "
         "measurements). Changing it mid-stream is a tool change: the stream goes on. "
         "radius_mm follows the shape's largest radius; a fluted cutter sets the vibration "
