@@ -552,6 +552,16 @@ def _brick_copy(api, sid: int, copy: np.ndarray, since, generation, max_bricks=4
     pytest.fail("paging did not finish")
 
 
+def test_a_bone_version_beyond_64_bits_is_a_422(api):
+    """schemathesis found a 500 for since=227629129482688010387456 (a bone version is an
+    int64)."""
+    s = _session(api)
+    for path in ("deltas", "mesh"):
+        r = api.get(f"/sessions/{s['id']}/{path}", params={"since": 1 << 80})
+        assert r.status_code == 422 and "less than or equal" in r.text, r.text
+    api.delete(f"/sessions/{s['id']}")
+
+
 def test_a_replaced_bone_has_a_new_generation_and_old_copies_get_full_deltas(stack, api):
     s = _session(api)
     sid = s["id"]

@@ -21,6 +21,8 @@ BURR_RADIUS_MIN_MM = 0.25
 BURR_RADIUS_MAX_MM = 5.0
 #: The longest cutting head a surgical burr has, mm (long fissure burrs: ~10 mm).
 BURR_LENGTH_MAX_MM = 20.0
+#: A bone version (``since`` of deltas and meshes) is an int64.
+MAX_BONE_VERSION = (1 << 63) - 1
 #: The longest shaft a handpiece reaches with, mm (burr centre to the handpiece's nose).
 SHAFT_LENGTH_MAX_MM = 200.0
 #: A coordinate a POSE can reach (SPEC 3.1: positions within ±1e9 engine units).

@@ -25,7 +25,7 @@ from ..bone.phantoms import PHANTOM_VOXEL_MM
 from . import storage
 from .generation import bone_generation
 from .manager import ApiError, ControlPlane
-from .models import RecordingStart, RestoreRequest, SnapshotRequest
+from .models import MAX_BONE_VERSION, RecordingStart, RestoreRequest, SnapshotRequest
 from .routes_sessions import SessionPath, _plane, wait_for
 
 router = APIRouter()
@@ -239,7 +239,8 @@ def export_mesh(request: Request, session_id: int = SessionPath,
 @router.get("/sessions/{session_id}/deltas", tags=["exports"],
             responses={200: {"content": {DELTA_MEDIA_TYPE: {}}}})
 def deltas(request: Request, session_id: int = SessionPath,
-           since: int | None = Query(None, ge=0, description="the bone version the client "
+           since: int | None = Query(None, ge=0, le=MAX_BONE_VERSION,
+                                     description="the bone version the client "
                                                              "has; omitted: every brick "
                                                              "(full)"),
            generation: int | None = Query(None, ge=0, le=(1 << 63) - 1,

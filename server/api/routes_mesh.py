@@ -24,6 +24,7 @@ from .mesh_pages import (
     MeshRequest,
     mesh_page,
 )
+from .models import MAX_BONE_VERSION
 from .routes_sessions import SessionPath
 
 router = APIRouter(tags=["exports"])
@@ -67,7 +68,8 @@ def _meshable(plane: ControlPlane, session_id: int) -> ManagedSession:
 @router.get("/sessions/{session_id}/mesh", response_class=Response,
             responses={200: {"content": {MEDIA_TYPE: {}}}})
 def mesh(request: Request, session_id: int = SessionPath,
-         since: int | None = Query(None, ge=0, description="the bone version your chunks "
+         since: int | None = Query(None, ge=0, le=MAX_BONE_VERSION,
+                                   description="the bone version your chunks "
                                                            "are at; omitted: every chunk"),
          chunk_bricks: int = ChunkBricks, frame: Frame = FrameQuery,
          winding: Winding = WindingQuery,
