@@ -13,6 +13,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from .. import __version__
+from .docs_pages import add_docs_pages
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
 from .sources import SourceError
@@ -38,7 +39,10 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         description="Sessions, bones, model parameters, exports and statistics of a burrforce "
                     "haptic force server. Forces stream over UDP (proto/SPEC.md); this API "
                     "configures what they are computed from. Units are in field names.",
+        # FastAPI's own pages load their scripts from a CDN: add_docs_pages serves them.
+        docs_url=None, redoc_url=None,
     )
+    add_docs_pages(app)
     app.state.plane = plane
     app.state.stats = stats
     app.state.token = token

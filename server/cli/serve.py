@@ -246,6 +246,8 @@ def main(args: argparse.Namespace) -> int:
                 return
             # The default session's worker: with a pool it need not be worker 0.
             udp_host, udp_port = plane.address(session) or stack.udp_address
+            if udp_host in ("0.0.0.0", "::"):  # bound to every interface: reach it locally
+                udp_host = "127.0.0.1"
             c = connection.Connection(udp_host, udp_port, session.id, session.key_hex,
                                       session.config.frame,
                                       (session.bone_info or {}).get("voxel_mm"), stack.url,
@@ -308,7 +310,8 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
             haptic_device: str | None = None, pool: str | None = None) -> None:
     say(f"ready in {elapsed_s:.1f} s")
     output = f"coupled output (device {config.device})" if config.device else "raw force"
-    say(f"  UDP   {c.host}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
+    bound = config.host if config.host in ("0.0.0.0", "::") else c.host
+    say(f"  UDP   {bound}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
         + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
     if pool:
         say(f"  {pool}")
