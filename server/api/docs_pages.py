@@ -27,7 +27,9 @@ ASSETS_URL = "/docs/assets"
 #: Styles: both UIs set inline styles. Workers: ReDoc's search runs in a blob: worker.
 CSP = ("default-src 'none'; script-src 'self'{hashes}; style-src 'self' 'unsafe-inline'; "
        "img-src 'self' data:; font-src 'self' data:; connect-src 'self'; "
-       "worker-src 'self' blob:; base-uri 'none'; form-action 'self'")
+       "worker-src 'self' blob:; base-uri 'none'; form-action 'self'; "
+       # The token is typed into these pages: no other site may frame them.
+       "frame-ancestors 'none'")
 _INLINE_SCRIPT = re.compile(r"<script>(.*?)</script>", re.DOTALL)
 #: (package, folder) holding swagger-ui-bundle.js, swagger-ui.css, redoc.standalone.js and
 #: favicon.png; Starlette finds the folder through the installed package, wherever it is.
@@ -64,7 +66,9 @@ def add_docs_pages(app: FastAPI) -> None:
             swagger_js_url=f"{assets}/swagger-ui-bundle.js",
             swagger_css_url=f"{assets}/swagger-ui.css",
             swagger_favicon_url=f"{assets}/favicon.png",
-            swagger_ui_parameters=app.swagger_ui_parameters))
+            # No validator badge: it is fetched from swagger.io for non-local hosts.
+            swagger_ui_parameters={**(app.swagger_ui_parameters or {}),
+                                   "validatorUrl": None}))
 
     @app.get(REDOC_URL, include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:

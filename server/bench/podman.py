@@ -94,9 +94,11 @@ def containers_conf() -> str:
 
 def compose_ulimits() -> dict:
     """The same limits in a compose file's ``ulimits:`` form (compose's containers, created
-    over the Docker API, do not get containers.conf's defaults)."""
+    over the Docker API, do not get containers.conf's defaults), and this process's own nice
+    limit in place of docker/compose.yaml's 30, which a sandbox may refuse to raise to."""
     out = {}
-    for name, value in _limits().items():
+    limits = {**_limits(), "nice": _limit(resource.RLIMIT_NICE)}
+    for name, value in limits.items():
         soft, hard = (int(v) for v in value.split(":"))
         out[name] = {"soft": soft, "hard": hard}
     return out
@@ -199,7 +201,7 @@ class Podman:
             publish: tuple[str, ...] = (), network: str | None = None,
             args: tuple[str, ...] = (), command: tuple[str, ...] = ()) -> Container:
         """``podman run -d`` (removed first if a container of that name is left over)."""
-        self("rm", "--force", "--ignore", name, check=False)
+        Container(self, name).remove()
         opts = ["run", "-d", "--name", name, "--shm-size", "1g"]
         for k, v in (env or {}).items():
             opts += ["-e", f"{k}={v}"]
@@ -257,4 +259,5 @@ class Container:
         return int(self.state()["ExitCode"])
 
     def remove(self) -> None:
-        self.podman("rm", "--force", "--ignore", self.name, check=False)
+        """Remove it and its anonymous volumes (the image declares /data one)."""
+        self.podman("rm", "--force", "--ignore", "--volumes", self.name, check=False)

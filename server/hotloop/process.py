@@ -495,8 +495,9 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
 
 def raise_priority(nice: int = HOT_LOOP_NICE) -> bool:
     """Ask the scheduler to run this process ahead of the control plane and whatever else
-    shares the cores (nice ``nice``). Allowed for root, with CAP_SYS_NICE (docker:
-    ``cap_add: [SYS_NICE]``) or an ``RLIMIT_NICE`` that permits it; elsewhere the loop runs
+    shares the cores (nice ``nice``). Allowed for root, with CAP_SYS_NICE (podman:
+    ``cap_add: [SYS_NICE]``) or an ``RLIMIT_NICE`` that permits it (docker/compose.yaml's
+    ``ulimits: {nice: 30}``: docker gives added capabilities to root only); elsewhere the loop runs
     at the usual priority. Measured (``bench soak``): with a 100 000/s local flood on two
     cores, the usual priority let the flood's CPU push a session's p99 to 164 ms."""
     try:
