@@ -582,6 +582,28 @@ class BurrRest:
         """
         return self._download(f"/recordings/{_quoted(name)}", {}, path)
 
+    def recording_report(self, name: str, threshold_n: float | None = None) -> dict:
+        """The session report of recording ``name``: ``duration_s``, ``cutting_s``,
+        ``removed_mm3_by_material``, ``forbidden_contacts`` (``time_s``, ``material``,
+        ``position_mm``), ``hand_force_peak_N``, ``hand_force_mean_N``,
+        ``time_above_threshold_s`` for ``threshold_n`` (server default 2 N), the plotted
+        ``series``, … (the server replays the recording: about as long as it lasted).
+
+        Raises:
+            RestError: 404 when there is no such recording, 422 for a bad threshold.
+        """
+        params = {} if threshold_n is None else {"threshold_n": float(threshold_n)}
+        return self._json("GET", f"/recordings/{_quoted(name)}/report", params=params,
+                          wait=True)
+
+    def download_recording_report(self, name: str, path: str | Path,
+                                  threshold_n: float | None = None) -> Path:
+        """Write recording ``name``'s report as a self-contained HTML page to ``path``."""
+        params: dict[str, Any] = {"format": "html"}
+        if threshold_n is not None:
+            params["threshold_n"] = float(threshold_n)
+        return self._download(f"/recordings/{_quoted(name)}/report", params, path)
+
     def delete_recording(self, name: str) -> dict:
         """Delete recording ``name``; returns ``deleted`` and ``bytes`` freed.
 

@@ -13,6 +13,8 @@ import urllib.request
 
 import numpy as np
 import pytest
+from waiting import WAIT_S
+from waiting import wait_until as _wait
 
 from burrforce.client.udp import BurrClient, ServerGone
 from burrforce.proto.codec import decode_server_message
@@ -25,17 +27,6 @@ from burrforce.server.api.stack import ServerStack
 from burrforce.server.bench.serve_process import spawn_serve
 
 TOKEN = "crash-recovery-token-0123456789"
-#: Bounds on waiting for something that happens in the background; never asserted on.
-WAIT_S = 60.0
-
-
-def _wait(predicate, timeout_s: float = WAIT_S, interval_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval_s)
-    return predicate()
 
 
 def _cut(client: BurrClient, grid_x0: float, n: int = 200) -> int:

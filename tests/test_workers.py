@@ -16,6 +16,7 @@ import time
 import httpx
 import numpy as np
 import pytest
+from waiting import wait_until as _wait
 
 from burrforce.client.udp import BurrClient, ServerError, ServerGone
 from burrforce.proto.messages import UNKNOWN_SESSION
@@ -24,17 +25,6 @@ from burrforce.server.api.models import Parameters
 from burrforce.server.api.stack import ServerStack
 
 TOKEN = "workers-test-token-0123456789"
-#: Bounds on waiting for something that happens in the background; never asserted on.
-WAIT_S = 60.0
-
-
-def _wait(predicate, timeout_s: float = WAIT_S, interval_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval_s)
-    return predicate()
 
 
 def _pool(tmp_path, workers: int = 2) -> ServerStack:

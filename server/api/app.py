@@ -26,7 +26,14 @@ _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats,
                supervisor: Supervisor | None = None) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
-    from . import routes_calibration, routes_data, routes_devices, routes_mesh, routes_sessions
+    from . import (
+        routes_calibration,
+        routes_data,
+        routes_devices,
+        routes_mesh,
+        routes_sessions,
+        routes_telemetry,
+    )
 
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
@@ -126,4 +133,5 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     app.include_router(routes_mesh.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     app.include_router(routes_mesh.ws_router, prefix=API_PREFIX)
+    app.include_router(routes_telemetry.router, prefix=API_PREFIX)
     return app

@@ -49,6 +49,7 @@ from .config import ServeConfig
 from .generation import bone_generation, next_generation
 from .models import Features, Parameters
 from .sources import BoneSource, SourceError, SourceRoots, resolve, snapshot_path
+from .telemetry import TelemetryReader
 
 log = logging.getLogger("burrforce.api")
 
@@ -234,6 +235,8 @@ class ControlPlane:
         self.run_dir = run_directory(0)
         (self.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n")
         remove_stale_run_directories(self.run_dir.parent, keep=self.run_dir)
+        #: Each session's live state, mapped from the hot loop (``telemetry``).
+        self.telemetry = TelemetryReader(self.run_dir)
         self.sessions: dict[int, ManagedSession] = {}
         self.jobs: dict[str, Job] = {}
         self._lock = threading.RLock()
@@ -359,6 +362,7 @@ class ControlPlane:
                             exc.detail)
             finally:
                 self._drop_bone(session)
+                self.telemetry.discard(session_id)
 
     def load_bone(self, session_id: int, bone: BoneSource, kind: str = "load") -> Job:
         """Replace a session's bone (a new source, a reset or a restore)."""
@@ -498,7 +502,8 @@ class ControlPlane:
         return SessionSpec(session.id, ref, None, key, session.effective_config(),
                            session.params, session.effective_shaft(),
                            materials=materials, publish=session.features.deltas,
-                           next_stream=session.next_stream)
+                           next_stream=session.next_stream,
+                           telemetry=self.telemetry.path(session.id))
 
     # -- a restarted hot loop -----------------------------------------------------------------
     def rebuild(self, hot: HotLoopProcess, streams: dict[int, int] | None = None,
@@ -882,6 +887,7 @@ class ControlPlane:
                 pass
             self._drop_bone(session)
         self.sessions.clear()
+        self.telemetry.close()
         shutil.rmtree(self.run_dir, ignore_errors=True)
 
     def resolve(self, source: str, kind: str | None = None, voxel_mm: float | None = None,

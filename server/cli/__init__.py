@@ -118,6 +118,12 @@ def _add_replay(sub: argparse._SubParsersAction) -> None:
     cli_replay.add_parser(sub)
 
 
+def _add_report(sub: argparse._SubParsersAction) -> None:
+    from . import report as cli_report
+
+    cli_report.add_parser(sub)
+
+
 def _add_serve(sub: argparse._SubParsersAction) -> None:
     from . import serve as cli_serve
 
@@ -196,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_device(sub)
     _add_bench(sub)
     _add_replay(sub)
+    _add_report(sub)
     return parser
 
 

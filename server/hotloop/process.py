@@ -36,6 +36,7 @@ from ..model.params import CuttingParams
 from .dispatch import Dispatcher
 from .loop import LOOP_COUNTERS, open_socket, serve
 from .session import Session, SessionConfig
+from .telemetry import TelemetrySlot
 
 PHANTOM_PREFIX = "phantom:"
 #: The bone ``burrforce serve`` loads when none is named.
@@ -73,6 +74,9 @@ class SessionSpec:
         publish: for a shared bone, keep the counters that let the control plane read it
             while it is cut.
         next_stream: the first stream number the session offers (None: a random one).
+        telemetry: a telemetry file the control plane created and reads
+            (``hotloop.telemetry``): the session's per-packet state lives in it. None:
+            private memory.
     """
 
     session_id: int = 1
@@ -85,6 +89,7 @@ class SessionSpec:
     materials: MaterialTable | None = None
     publish: bool = True
     next_stream: int | None = None
+    telemetry: str | None = None
 
 
 def load_session_bone(spec: SessionSpec) -> Bone:
@@ -101,8 +106,9 @@ def build_session(spec: SessionSpec) -> Session:
     bone = load_session_bone(spec)
     materials = spec.materials if spec.materials is not None else bone.materials
     engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft)
+    telemetry = TelemetrySlot.claim(spec.telemetry) if spec.telemetry is not None else None
     session = Session(spec.session_id, engine, spec.config, spec.key,
-                      next_stream=spec.next_stream)
+                      next_stream=spec.next_stream, telemetry=telemetry)
     session.publish_bone(spec.publish)
     return session
 
@@ -459,6 +465,8 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
         for spec in config.sessions:
             dispatcher.add(build_session(spec))
         dispatcher.warm_up()
+        for session in dispatcher.sessions.values():
+            session.publish_telemetry()
         # Every session may be switched to the coupled output later: no first coupled
         # packet may pay for loading its kernels.
         warm_haptics()
@@ -599,6 +607,7 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
                 # offered again (a captured hello and POSE would open it; SPEC 5.2).
                 session.next_stream = old.next_stream
                 dispatcher.sessions[spec.session_id] = session
+            session.publish_telemetry()
         # The old bone is unmapped here, with the packet thread free to take the lock.
         del old
         return bone_info(session)

@@ -7,6 +7,7 @@ import math
 import secrets
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -91,6 +92,9 @@ from .wire import (
     new_buffers,
     pose_arrays,
 )
+
+if TYPE_CHECKING:
+    from .telemetry import TelemetrySlot
 
 ZERO3 = (0.0, 0.0, 0.0)
 #: Model-stage times kept per session for statistics (a ring buffer).
@@ -179,10 +183,13 @@ class Session:
     """
 
     def __init__(self, session_id: int, engine: BoneEngine, config: SessionConfig | None = None,
-                 key: bytes | None = None, *, next_stream: int | None = None) -> None:
+                 key: bytes | None = None, *, next_stream: int | None = None,
+                 telemetry: TelemetrySlot | None = None) -> None:
         """``next_stream``: the first stream number to offer (nonzero uint32); None: a random
         one. The control plane passes the last journaled stream + 65536 after a restart, so
-        no number offered before the restart is offered again."""
+        no number offered before the restart is offered again. ``telemetry``: a slot of a
+        telemetry file the per-packet state lives in (``hotloop.telemetry``); None: private
+        arrays."""
         if not (isinstance(session_id, int) and 0 <= session_id < 1 << 32):
             raise ValueError(f"session id must be an unsigned 32-bit integer, got {session_id!r}")
         if next_stream is None:
@@ -207,7 +214,10 @@ class Session:
         self.counters = {"accepted": 0, "stale": 0, "duplicate": 0, "bad_value": 0,
                          "internal": 0, "hellos": 0, "streams": 0, "wrong_stream": 0,
                          "velocity_resets": 0, "teleports": 0}
-        self.tick_ns = np.zeros(TICK_TIMES_KEPT, dtype=np.int64)
+        #: Where the state arrays live when the control plane samples them (or None).
+        self.telemetry = telemetry
+        self.tick_ns = (telemetry.tick_ns if telemetry is not None
+                        else np.zeros(TICK_TIMES_KEPT, dtype=np.int64))
         self.ticks_timed = 0
         #: Names this session's count of timed ticks: a new session under the same id, or
         #: counters reset, start another (``Dispatcher.snapshot``'s ``tick_times_since``).
@@ -216,7 +226,8 @@ class Session:
         self._shared_header = engine.grid.shared_header
         #: The per-packet stages' state (``stages``): constants, this packet's values in the
         #: grid frame, the velocity estimate's memory, the reply's values.
-        self._k, self._m = new_state()
+        # Same dtypes, shapes and contiguity either way: the kernels see the same types.
+        self._k, self._m = new_state() if telemetry is None else (telemetry.k, telemetry.m)
         self._m[M_SESSION] = session_id
         # The bone engine's inputs are this packet's values where pose_in wrote them.
         self._c = self._k[W_P:W_P + 3]
@@ -289,6 +300,13 @@ class Session:
         if header is not None:
             header[1] = self.engine.grid.version  # carving went unpublished while it was off
         self.engine.grid.shared_header = header
+
+    def publish_telemetry(self) -> None:
+        """Once installed in the loop (under its lock): the control plane reads this session's
+        telemetry slot from now on (no-op without one)."""
+        if self.telemetry is not None:
+            grid = self.engine.grid
+            self.telemetry.activate(grid.origin_mm, grid.direction)
 
     def engine_changed(self) -> None:
         """After the engine's parameters changed: pick up what the hot path caches (the
