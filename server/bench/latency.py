@@ -13,7 +13,11 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
   shaft, vibration);
 - ``minimal``: the same cut on its own copy of the bone with the scene features a bare
   cutting scene can drop turned off (no shaft, no vibration, no publishing): what skipping
-  them saves.
+  them saves;
+- ``watched``: the same cut as ``cutting`` on its own copy of the bone, while another
+  process samples its telemetry at 60 Hz and encodes each sample as the WebSocket does
+  (``bench.telemetry_watch``, paused during every other run's chunks): what a live view
+  costs. Both keep their per-packet state in a telemetry file, as under ``serve``.
 
 Each paced at 1 kHz (the haptic rate; sends on an absolute schedule) and back-to-back. A
 round trip runs from the client stamping its packet (before encoding, as a real client) to
@@ -28,6 +32,7 @@ import gc
 import json
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -43,10 +48,13 @@ from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
 from .timing import machine_line
 
-MODES = ("echo", "overhead", "cutting", "minimal")
+MODES = ("echo", "overhead", "cutting", "watched", "minimal")
+#: A live view's sampling rate (the browser view's plots: >= 30 updates/s).
+WATCH_HZ = 60.0
 OVERHEAD_SESSION = 1
 CUTTING_SESSION = 2
 MINIMAL_SESSION = 3
+WATCHED_SESSION = 4
 #: The cut: the thesis's parallel case at α = 60°, rows across the 26 × 16 mm top face.
 RPM = 60_000.0
 FEED_MM_S = 3.0
@@ -216,6 +224,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         progress=None) -> dict:
     import shutil
 
+    from ..api.telemetry import TelemetryReader
     from ..bone import ShaftParams, phantom
     from ..bone.shared import publish, run_directory
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
@@ -223,12 +232,15 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     say = progress or (lambda text: None)
     key = new_key()
     bone = phantom("workpiece", voxel_mm)
-    shared = run_directory(2 * bone.grid.density.size * 4)
+    shared = run_directory(3 * bone.grid.density.size * 4)
+    telemetry = TelemetryReader(shared)
     sessions = (
         SessionSpec(OVERHEAD_SESSION, "phantom:workpiece", 0.5, key,
                     SessionConfig(model=False)),
         SessionSpec(CUTTING_SESSION, publish(bone, shared, "full.bone"), None, key,
-                    SessionConfig(), publish=True),
+                    SessionConfig(), publish=True, telemetry=telemetry.path(CUTTING_SESSION)),
+        SessionSpec(WATCHED_SESSION, publish(bone, shared, "watched.bone"), None, key,
+                    SessionConfig(), publish=True, telemetry=telemetry.path(WATCHED_SESSION)),
         SessionSpec(MINIMAL_SESSION, publish(bone, shared, "minimal.bone"), None, key,
                     SessionConfig(vibration=None), shaft=ShaftParams(length_mm=0.0),
                     publish=False),
@@ -238,14 +250,21 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     echo = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.echo"],
                             stdout=subprocess.PIPE, text=True)
     hot = HotLoopProcess(HotLoopConfig(sessions=sessions))
+    watcher = None
     try:
         echo_port = int(echo.stdout.readline())  # type: ignore[union-attr]
         address = hot.start()
         placement = _pin(hot.pid, echo.pid)
+        watcher = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.telemetry_watch",
+                                    str(shared), str(WATCHED_SESSION), str(WATCH_HZ)],
+                                   stdout=subprocess.PIPE, text=True)
+        watcher.stdout.readline()  # type: ignore[union-attr]
+        watcher.send_signal(signal.SIGSTOP)
         clients = {
             "echo": _Client(("127.0.0.1", echo_port), None, None),
             "overhead": _Client(address, OVERHEAD_SESSION, key),
             "cutting": _Client(address, CUTTING_SESSION, key, _Cut()),
+            "watched": _Client(address, WATCHED_SESSION, key, _Cut()),
             "minimal": _Client(address, MINIMAL_SESSION, key, _Cut()),
         }
         results: list[RunStats] = []
@@ -261,14 +280,18 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             while done < total:
                 n = min(CHUNK, total - done)
                 for mode in MODES:
+                    if mode == "watched":
+                        watcher.send_signal(signal.SIGCONT)
                     clients[mode].chunk(n, period)
+                    if mode == "watched":
+                        watcher.send_signal(signal.SIGSTOP)
                 done += n
                 say(f"{pacing}: {done}/{total}")
             for mode in MODES:
                 c = clients[mode]
                 rtt = np.array(c.rtt_us)
                 fraction = None
-                if mode in ("cutting", "minimal"):
+                if mode in ("cutting", "watched", "minimal"):
                     mask = np.array(c.cutting, dtype=bool)
                     fraction = float(mask.mean()) if len(mask) else 0.0
                     rtt = rtt[mask]  # the expensive ticks: the burr removing bone
@@ -278,6 +301,10 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"stop",
                                                                 ("127.0.0.1", echo_port))
     finally:
+        if watcher is not None:
+            watcher.send_signal(signal.SIGCONT)
+            watcher.terminate()
+            watched_samples = (watcher.communicate(timeout=10)[0] or "").strip()
         hot.stop()
         shutil.rmtree(shared, ignore_errors=True)
         try:
@@ -286,6 +313,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             echo.kill()
     cutting = server["sessions"][CUTTING_SESSION]
     minimal = server["sessions"][MINIMAL_SESSION]
+    watched = server["sessions"][WATCHED_SESSION]
     paced = {r.mode: r for r in results if r.pacing == "1 kHz"}
     b2b = {r.mode: r for r in results if r.pacing == "back-to-back"}
     return {
@@ -302,6 +330,11 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         "b2b_p99_us": b2b["cutting"].p99_us,
         "server_tick_p50_us": cutting["tick_p50_us"],
         "server_tick_p99_us": cutting["tick_p99_us"],
+        "watched_p50_us": paced["watched"].p50_us,
+        "watched_p99_us": paced["watched"].p99_us,
+        "watch_hz": WATCH_HZ,
+        "server_tick_watched_p50_us": watched["tick_p50_us"],
+        "watched_samples": int(watched_samples) if watched_samples.isdigit() else None,
         "minimal_p50_us": paced["minimal"].p50_us,
         "minimal_p99_us": paced["minimal"].p99_us,
         "server_tick_minimal_p50_us": minimal["tick_p50_us"],
@@ -351,6 +384,14 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"{result['server_tick_p50_us']:.0f} µs, p99 "
         f"{result['server_tick_minimal_p99_us']:.0f} against "
         f"{result['server_tick_p99_us']:.0f} µs.",
+        "",
+        f"A live view (`watched`: the same cut on its own copy of the bone while another "
+        f"process samples its telemetry at {result['watch_hz']:g} Hz and encodes each "
+        f"sample as the WebSocket does; {result['watched_samples']} samples): round "
+        f"trip p50 {result['watched_p50_us']:.0f} µs against {result['p50_us']:.0f} µs "
+        f"unwatched, p99 {result['watched_p99_us']:.0f} against {result['p99_us']:.0f} µs; "
+        f"model stage p50 {result['server_tick_watched_p50_us']:.0f} against "
+        f"{result['server_tick_p50_us']:.0f} µs.",
         "",
         "Targets (1 kHz pacing):",
         f"- protocol overhead p50 ≤ 1.5 × echo p50: {overhead:.0f} µs against "
