@@ -4,23 +4,33 @@ streams a groove over UDP; and it follows a hot loop the supervisor restarted.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shutil
 import signal
+import tempfile
 import threading
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import pytest
 from waiting import wait_until as _wait
 
 from burrforce.client.udp import BurrClient, ServerGone
 from burrforce.proto import frames
-from burrforce.proto.messages import STATUS_CUTTING
+from burrforce.proto.messages import STATUS_CUTTING, Pose
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.models import Parameters
 from burrforce.server.api.stack import ServerStack
+from burrforce.server.api.telemetry import TelemetryReader
+from burrforce.server.haptics.config import HapticsConfig
+from burrforce.server.haptics.profiles import PROFILES
+from burrforce.server.hotloop.dispatch import Dispatcher
+from burrforce.server.hotloop.process import SessionSpec, build_session
+from burrforce.server.record import start_recording
 
 TOKEN = "telemetry-test-token-0123456789"
 
@@ -176,3 +186,67 @@ def test_the_reader_follows_a_restarted_hot_loop(stack):
     assert last is not None
     s = reader.sample(7)
     assert s.packet and s.seq == last.seq and s.force_N == list(last.force)
+
+
+def test_replies_built_in_python_are_never_reported_as_the_raw_replys(tmp_path):
+    """Recording and the device-limited output answer in Python and keep no reply values:
+    the sample then says so (no seq, not current) instead of showing the last raw reply."""
+    directory = Path(tempfile.mkdtemp(dir="/dev/shm")) if Path("/dev/shm").is_dir() \
+        else tmp_path
+    reader = TelemetryReader(directory)
+    if not reader.available:
+        pytest.skip("no /dev/shm here (allowed in CI)")
+    try:
+        session = build_session(SessionSpec(session_id=3, bone="phantom:workpiece",
+                                            voxel_mm=0.5, telemetry=reader.path(3),
+                                            publish=False))
+        dispatcher = Dispatcher()
+        dispatcher.add(session)
+        dispatcher.warm_up()
+        session.publish_telemetry()
+        t_us = [1000]
+
+        def send(seq: int, x_mm: float, rpm: float) -> None:
+            t_us[0] += 1000
+            session.respond(Pose(3, seq, t_us[0], (x_mm, 0.0, 50.0), (0.0, 0.0, 0.0, 1.0),
+                                 rpm, True), time.monotonic_ns())
+
+        for seq in range(1, 4):
+            send(seq, 0.0, 60_000.0)
+        raw = reader.sample(3)
+        assert raw.packet and raw.reply_current and raw.seq == 3
+        assert raw.vibration_frequency_Hz == pytest.approx(1000.0)
+        recording = start_recording(session, str(directory / "r.burrrec"))
+        for seq in range(4, 40):
+            send(seq, 0.001 * seq, 30_000.0)
+        during = reader.sample(3)
+        recording.detach()
+        recording.close()
+        assert not during.packet and not during.reply_current
+        assert during.seq is None and during.vibration_frequency_Hz is None
+        assert during.rpm == 30_000.0  # the pose stays live
+        session.configure(dataclasses.replace(session.config, haptics=HapticsConfig(
+            output="raw", profile=PROFILES["generic"])))
+        for seq in range(40, 60):
+            send(seq, 0.001 * seq, 20_000.0)
+        limited = reader.sample(3)
+        assert not limited.packet and limited.seq is None and limited.rpm == 20_000.0
+    finally:
+        reader.close()
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def test_a_reused_session_id_gets_a_file_of_its_own(stack):
+    """Deleting a session and creating one with the same id gives the new one a fresh,
+    live file (the old one is discarded while the id is still taken)."""
+    source = stack.plane.resolve("phantom:workpiece", None, 0.5)
+    stack.add_session(source, Parameters(), session_id=41)
+    assert stack.plane.telemetry.sample(41) is not None
+    stack.plane.delete_session(41)
+    assert stack.plane.telemetry.sample(41) is None
+    stack.add_session(source, Parameters(), session_id=41)
+    try:
+        assert stack.plane.telemetry.sample(41) is not None
+        assert Path(stack.plane.telemetry.path(41)).exists()
+    finally:
+        stack.plane.delete_session(41)

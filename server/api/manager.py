@@ -350,6 +350,9 @@ class ControlPlane:
             self._stop_recording(session)
             with self._lock:
                 self.sessions.pop(session_id, None)
+                # Now, before a new session may take the id: it must get a file of its own
+                # (the old loop keeps writing its map of the unlinked one until removed).
+                self.telemetry.discard(session_id)
             # Now, not at the journal's next pass: a stop meanwhile must not resume it.
             shutil.rmtree(journal_dir(self.data_dir) / str(session_id), ignore_errors=True)
             try:
@@ -362,7 +365,6 @@ class ControlPlane:
                             exc.detail)
             finally:
                 self._drop_bone(session)
-                self.telemetry.discard(session_id)
 
     def load_bone(self, session_id: int, bone: BoneSource, kind: str = "load") -> Job:
         """Replace a session's bone (a new source, a reset or a restore)."""

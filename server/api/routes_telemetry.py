@@ -47,6 +47,10 @@ def _plane(request: Request | WebSocket) -> ControlPlane:
 
 def _sample(plane: ControlPlane, session_id: int) -> TelemetrySample:
     plane.ready(session_id)
+    if not plane.telemetry.available:
+        raise ApiError(503, "no live telemetry on this server: it needs room in /dev/shm "
+                            "(the shared bones fell back to a disk folder; in docker, raise "
+                            "shm_size)")
     sample = plane.telemetry.sample(session_id)
     if sample is None:
         raise ApiError(503, f"session {session_id} has no telemetry yet (its hot loop is "
@@ -94,7 +98,7 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
         await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
                              "or ?token=TOKEN)")
         return
-    if not session_id.isdigit() or int(session_id) >= 1 << 32:
+    if not (session_id.isascii() and session_id.isdecimal()) or int(session_id) >= 1 << 32:
         await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
                                      f"{session_id!r}"))
         return
@@ -102,6 +106,8 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     sid = int(session_id)
     try:
         plane.ready(sid)
+        if not plane.telemetry.available:
+            raise ApiError(503, "no live telemetry on this server: it needs room in /dev/shm")
     except ApiError as exc:
         await ws.close(4000 + exc.status, _reason(exc.detail))
         return

@@ -62,10 +62,11 @@ class TelemetrySample:
         session_id: the session.
         installs: how many times a session was installed in this file (changes when the
             hot loop restarts or the bone is reloaded).
-        packet: the raw output answered a packet since the session was installed (False
-            before, and always for the coupled and limited outputs, which keep no reply
-            integers: seq, t_client_us, t_recv_s, residence_us are then 0; the pose fields
-            and ``hand_force_magnitude_N`` are live either way).
+        packet: the raw output answered the session's latest packet (False before the
+            first, and whenever the coupled or limited output or a recording answered it:
+            those keep no reply values; ``seq``, ``t_client_us`` and ``error`` are then
+            None and ``residence_us`` 0; the pose fields and ``hand_force_magnitude_N`` are
+            live either way).
         seq, t_client_us: the packet's sequence number and client time (echoed by the reply).
         t_recv_s: when the server received it, its monotonic clock, s.
         residence_us: t_send − t_recv, the server's part of the round trip, µs.
@@ -95,11 +96,11 @@ class TelemetrySample:
     session_id: int
     installs: int
     packet: bool
-    seq: int
-    t_client_us: int
+    seq: int | None
+    t_client_us: int | None
     t_recv_s: float
     residence_us: int
-    error: str
+    error: str | None
     status: int
     status_names: list[str]
     reply_current: bool
@@ -150,14 +151,21 @@ class TelemetryReader:
 
     def __init__(self, directory: str | os.PathLike) -> None:
         self.directory = Path(directory)
+        #: Telemetry files only in RAM (/dev/shm): a session's state is written on every
+        #: packet, and pages of a disk-backed file (the run directory's fallback when
+        #: /dev/shm is small) fault through the filesystem after each writeback.
+        self.available = os.path.realpath(self.directory).startswith("/dev/shm/")
         self._maps: dict[int, _Mapped] = {}
         self._lock = threading.Lock()
 
     def _file(self, session_id: int) -> Path:
         return self.directory / f"telemetry-{session_id}.bin"
 
-    def path(self, session_id: int) -> str:
-        """The session's telemetry file, created (zeroed) if it does not exist."""
+    def path(self, session_id: int) -> str | None:
+        """The session's telemetry file, created (zeroed) if it does not exist; None when
+        telemetry is not :attr:`available` (the session then keeps private arrays)."""
+        if not self.available:
+            return None
         p = self._file(session_id)
         if not p.exists():
             block.create(p)
@@ -263,10 +271,11 @@ def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.
                                       rel_tol=1e-12, abs_tol=1e-300)
     status = int(ri[R_STATUS]) if current else int(m[M_STATUS])
     return TelemetrySample(
-        session_id=session_id, installs=installs, packet=packet, seq=seq,
-        t_client_us=int(ri[R_T_CLIENT]), t_recv_s=t_recv * 1e-6,
+        session_id=session_id, installs=installs, packet=packet,
+        seq=seq if packet else None,
+        t_client_us=int(ri[R_T_CLIENT]) if packet else None, t_recv_s=t_recv * 1e-6,
         residence_us=int(ri[R_T_SEND]) - t_recv if packet else 0,
-        error=ERROR_NAMES.get(int(ri[R_ERROR]), str(int(ri[R_ERROR]))),
+        error=ERROR_NAMES.get(int(ri[R_ERROR]), str(int(ri[R_ERROR]))) if packet else None,
         status=status,
         status_names=[name for bit, name in STATUS_NAMES.items() if status & bit],
         reply_current=current,

@@ -301,10 +301,15 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"stop",
                                                                 ("127.0.0.1", echo_port))
     finally:
+        watched_samples = ""
         if watcher is not None:
             watcher.send_signal(signal.SIGCONT)
             watcher.terminate()
-            watched_samples = (watcher.communicate(timeout=10)[0] or "").strip()
+            try:
+                watched_samples = (watcher.communicate(timeout=10)[0] or "").strip()
+            except subprocess.TimeoutExpired:
+                watcher.kill()
+                watcher.communicate()
         hot.stop()
         shutil.rmtree(shared, ignore_errors=True)
         try:

@@ -66,6 +66,7 @@ from .stages import (
     K_WINDOW_S,
     M_FLAGS,
     M_JUMPED,
+    M_REPLY,
     M_RING,
     M_SESSION,
     M_STALE,
@@ -89,6 +90,7 @@ from .wire import (
     P_SEQ,
     P_SPINDLE_ON,
     P_T_CLIENT,
+    R_T_RECV,
     new_buffers,
     pose_arrays,
 )
@@ -458,6 +460,9 @@ class Session:
         tf = self.transform
         engine = self.engine
         k = self._k
+        # The reply built here is not kept in M_REPLY/K_REPLY: mark what is there (an earlier
+        # raw or error reply) as not this packet's, for the telemetry reader.
+        self._m[M_REPLY + R_T_RECV] = 0
         t_client_us = int(pose_i[P_T_CLIENT])
         spindle_on = bool(pose_i[P_SPINDLE_ON])
         rpm = float(k[W_RPM])

@@ -69,6 +69,9 @@ def create(path: str | os.PathLike) -> None:
     tmp = Path(f"{path}.tmp")
     with open(tmp, "wb") as f:
         f.truncate(FILE_BYTES)
+        # Every page reserved now: the hot loop writing through its map of a full tmpfs
+        # would be a SIGBUS (as for shared bones); here it is an OSError in the caller.
+        os.posix_fallocate(f.fileno(), 0, FILE_BYTES)
         f.write(np.array([MAGIC], np.int64).tobytes())
     os.replace(tmp, path)
 
