@@ -18,6 +18,7 @@ echoes the client's ``t_client_us``, so the client's round trip is the client's 
 
 from __future__ import annotations
 
+import logging
 import math
 import mmap
 import os
@@ -47,6 +48,7 @@ from ..hotloop.wire import (
     R_T_SEND,
 )
 
+log = logging.getLogger("burrforce.api")
 #: Copies of a slot tried before a torn one is returned (a reply written during the copy).
 READ_ATTEMPTS = 3
 #: The tick-time percentiles are recomputed at most this often per session, s: over the
@@ -163,12 +165,18 @@ class TelemetryReader:
 
     def path(self, session_id: int) -> str | None:
         """The session's telemetry file, created (zeroed) if it does not exist; None when
-        telemetry is not :attr:`available` (the session then keeps private arrays)."""
+        telemetry is not :attr:`available` or /dev/shm has no room for the file (the
+        session then keeps private arrays: it streams, unwatched)."""
         if not self.available:
             return None
         p = self._file(session_id)
         if not p.exists():
-            block.create(p)
+            try:
+                block.create(p)
+            except OSError as exc:
+                log.warning("session %s streams without live telemetry: %s", session_id, exc)
+                Path(f"{p}.tmp").unlink(missing_ok=True)
+                return None
         return str(p)
 
     def discard(self, session_id: int) -> None:
