@@ -16,6 +16,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
 from waiting import wait_until as _wait
 
@@ -250,3 +251,21 @@ def test_a_reused_session_id_gets_a_file_of_its_own(stack):
         assert Path(stack.plane.telemetry.path(41)).exists()
     finally:
         stack.plane.delete_session(41)
+
+
+def test_installs_alternate_slots_and_the_header_names_both_in_one_word(tmp_path):
+    """A replacement session is built in the slot the installed one does not write; the
+    header's one word gives the reader the count and the slot together."""
+    from burrforce.server.hotloop import telemetry as block
+
+    path = tmp_path / "t.bin"
+    block.create(path)
+    eye = np.eye(3)
+    seen = []
+    for _ in range(4):
+        slot = block.TelemetrySlot.claim(path)
+        slot.activate(np.zeros(3), eye)
+        with open(path, "rb") as f:
+            state = int(np.frombuffer(f.read(block.PAGE), np.int64)[block.H_STATE])
+        seen.append(block.installs_and_slot(state))
+    assert seen == [(1, 0), (2, 1), (3, 0), (4, 1)]

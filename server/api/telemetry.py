@@ -208,14 +208,15 @@ class TelemetryReader:
     def _read(self, session_id: int, mapped: _Mapped) -> TelemetrySample | None:
         head = block.header(mapped.map)
         for _ in range(READ_ATTEMPTS):
-            installs, slot = int(head[block.H_INSTALLS]), int(head[block.H_ACTIVE])
-            if installs == 0 or not 0 <= slot < block.SLOTS:
+            state = int(head[block.H_STATE])
+            installs, slot = block.installs_and_slot(state)
+            if installs == 0:
                 return None
             geometry, k, m, ticks = block.slot_arrays(mapped.map, slot)
             stamp = (int(m[M_REPLY + R_SEQ]), int(m[M_REPLY + R_T_RECV]))
             g, kc, mc = geometry.copy(), k.copy(), m.copy()
-            if (int(head[block.H_INSTALLS]), int(m[M_REPLY + R_SEQ]),
-                    int(m[M_REPLY + R_T_RECV])) == (installs, *stamp):
+            if (int(head[block.H_STATE]), int(m[M_REPLY + R_SEQ]),
+                    int(m[M_REPLY + R_T_RECV])) == (state, *stamp):
                 break
         tick_last, p50, p99 = self._ticks(mapped, installs, ticks.copy())
         return _sample(session_id, installs, g, kc, mc, tick_last, p50, p99)

@@ -9,7 +9,8 @@ read-only: the packet path runs the same code on the same array types, and the c
 plane samples them at its own rate with no pipe, no lock and no work in the loop.
 
 The file (one per session, created by the control plane, ``api.telemetry``): a header page of
-int64 (magic, the active slot, the number of installs), then two slots, each page-aligned:
+int64 (magic; the number of installs and the active slot in one word, so that a reader never
+pairs one install's count with another's slot), then two slots, each page-aligned:
 the grid's geometry (float64 (SLOT_GEOMETRY,): origin_mm (3), direction (9) row-major), ``k``
 (float64 (K_SIZE,)), ``m`` (int64 (M_SIZE,)) and the tick-time ring (int64
 (TICK_TIMES_KEPT,), ns). Two slots, because a session is built and warmed up (which ticks it)
@@ -41,9 +42,15 @@ PAGE = 4096
 MAGIC = 0x6275727274656C31  # "burrtel1"
 #: Header slots (int64).
 H_MAGIC = 0
-H_ACTIVE = 1  #: the slot the installed session writes (0 or 1)
-H_INSTALLS = 2  #: sessions installed so far (0: none yet: nothing to read)
+#: ``installs * 2 + slot``: sessions installed so far (0: none yet: nothing to read) and the
+#: slot the installed one writes (0 or 1), written with one 8-byte store.
+H_STATE = 1
 N_HEADER = 8
+
+
+def installs_and_slot(state: int) -> tuple[int, int]:
+    """``(installs, active slot)`` from the header's ``H_STATE`` word."""
+    return state >> 1, state & 1
 SLOTS = 2
 #: A slot's geometry (float64): the grid frame in the server frame.
 G_ORIGIN = 0  #: (3) mm
@@ -106,7 +113,8 @@ class TelemetrySlot:
         self._header = header(self._map)
         if int(self._header[H_MAGIC]) != MAGIC:
             raise ValueError(f"{path} is not a telemetry file")
-        self.slot = 1 - int(self._header[H_ACTIVE]) if self._header[H_INSTALLS] > 0 else 0
+        installs, active = installs_and_slot(int(self._header[H_STATE]))
+        self.slot = 1 - active if installs > 0 else 0
         self.geometry, self.k, self.m, self.tick_ns = slot_arrays(self._map, self.slot)
         for a in (self.geometry, self.k, self.m, self.tick_ns):
             a[:] = 0
@@ -127,5 +135,5 @@ class TelemetrySlot:
         self.k[W_LAST_FORCE] = 0.0
         self.m[M_REPLY:M_REPLY + REPLY_INTS] = 0
         self.tick_ns[:] = 0
-        self._header[H_ACTIVE] = self.slot
-        self._header[H_INSTALLS] += 1
+        installs, _ = installs_and_slot(int(self._header[H_STATE]))
+        self._header[H_STATE] = (installs + 1) * 2 + self.slot
