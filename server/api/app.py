@@ -133,5 +133,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     app.include_router(routes_mesh.router, prefix=API_PREFIX,
                        dependencies=[Depends(authorize)])
     app.include_router(routes_mesh.ws_router, prefix=API_PREFIX)
-    app.include_router(routes_telemetry.router, prefix=API_PREFIX)
+    app.include_router(routes_telemetry.router, prefix=API_PREFIX,
+                       dependencies=[Depends(authorize)])
+    app.include_router(routes_telemetry.ws_router, prefix=API_PREFIX)
     return app

@@ -158,6 +158,21 @@ class WsQuery:
                    integer("format_version", 1, 1, FORMAT_VERSION))
 
 
+def watch_disconnect(ws: WebSocket) -> tuple[asyncio.Event, asyncio.Task]:
+    """An event set when the client of a push-only WebSocket leaves, and the task that
+    watches for it (cancel it when done). The client sends nothing; a receive returns only
+    when it leaves (or the server shuts down, which uvicorn reports the same way)."""
+    gone = asyncio.Event()
+
+    async def watch() -> None:
+        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
+            while (await ws.receive())["type"] != "websocket.disconnect":
+                pass
+        gone.set()
+
+    return gone, asyncio.create_task(watch())
+
+
 @ws_router.websocket("/sessions/{session_id}/mesh/ws")
 async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes mesh-chunk messages (proto/MESH.md): everything changed since ``since`` at
@@ -190,17 +205,7 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     since, chunk_bricks, frame, winding = (query.since, query.chunk_bricks, query.frame,
                                            query.winding)
     interval_ms = query.interval_ms
-    gone = asyncio.Event()
-
-    async def watch() -> None:
-        # The client sends nothing; a receive returns only when it leaves (or the server
-        # shuts down, which uvicorn reports the same way).
-        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
-            while (await ws.receive())["type"] != "websocket.disconnect":
-                pass
-        gone.set()
-
-    watcher = asyncio.create_task(watch())
+    gone, watcher = watch_disconnect(ws)
     req = _request(session, chunk_bricks, frame, winding)
     generation = bone_generation(session)  # before the reader: generation.py
     reader = session.reader

@@ -8,31 +8,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 
-from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 
 from .manager import ApiError, ControlPlane
-from .routes_mesh import _authorized, _reason
+from .routes_mesh import _authorized, _reason, watch_disconnect
 from .routes_sessions import SessionPath
 from .telemetry import TelemetrySample
 
-_bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
-
-
-def _authorize(request: Request,
-               credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
-    """The app's bearer check, here so that one router carries the REST route (header) and
-    the WebSocket (header or ``?token=``, checked by the route itself)."""
-    token = request.app.state.token
-    if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
-                                                      token.encode()):
-        raise ApiError(401, "missing or wrong bearer token (Authorization: Bearer TOKEN; "
-                            "`burrforce serve` printed it, or see its --token)")
-
-
+#: The REST route: the app adds its bearer check, as for every router.
 router = APIRouter()
+#: The WebSocket: checks the token itself (header or ``?token=``), as the mesh's does.
+ws_router = APIRouter()
 
 HZ_MIN = 10
 HZ_MAX = 60
@@ -58,8 +45,7 @@ def _sample(plane: ControlPlane, session_id: int) -> TelemetrySample:
     return sample
 
 
-@router.get("/sessions/{session_id}/telemetry", tags=["sessions"],
-            dependencies=[Depends(_authorize)])
+@router.get("/sessions/{session_id}/telemetry", tags=["sessions"])
 def telemetry(request: Request, session_id: int = SessionPath) -> dict:
     """The session's latest packet as the hot loop keeps it: pose (server frame, mm), the
     reply's force, components, vibration, status and bone version, the server's residence
@@ -81,7 +67,7 @@ def _hz(text: str | None) -> int:
     return value
 
 
-@router.websocket("/sessions/{session_id}/telemetry/ws")
+@ws_router.websocket("/sessions/{session_id}/telemetry/ws")
 async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes the session's telemetry (JSON, as ``GET …/telemetry``) ``hz`` times a second
     (10–60, default 30) when it changed, and at least once a second. Query: hz, token (or
@@ -111,16 +97,7 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     except ApiError as exc:
         await ws.close(4000 + exc.status, _reason(exc.detail))
         return
-    gone = asyncio.Event()
-
-    async def watch() -> None:
-        # The client sends nothing; a receive returns only when it leaves.
-        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
-            while (await ws.receive())["type"] != "websocket.disconnect":
-                pass
-        gone.set()
-
-    watcher = asyncio.create_task(watch())
+    gone, watcher = watch_disconnect(ws)
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
     last_key = None

@@ -245,8 +245,9 @@ class Container:
                     return time.monotonic() - t0
             except httpx.HTTPError:
                 pass
-            if not self.state().get("Running", False) and \
-                    self.state().get("Status") not in ("created", "configured"):
+            state = self.state()
+            if not state.get("Running", False) and \
+                    state.get("Status") not in ("created", "configured"):
                 break
             time.sleep(0.25)
         raise PodmanError(f"{url} did not answer {status} in {timeout_s:g} s; "
