@@ -596,6 +596,24 @@ class BurrRest:
         return self._json("GET", f"/recordings/{_quoted(name)}/report", params=params,
                           wait=True)
 
+    def session_report(self, session_id: int, format: str = "json",
+                       threshold_n: float | None = None) -> dict | str:
+        """Live session ``session_id``'s report, as :meth:`recording_report`'s (a dict), or
+        with ``format="html"`` the self-contained page (str). The hand force and cutting
+        time come from the server's 100 Hz sampling of the session (its ``notes`` say so).
+
+        Raises:
+            RestError: 404 when there is no such session, 409 while it is not ready, 422
+                for a bad threshold or format, 503 without live telemetry on the server.
+        """
+        params: dict[str, Any] = {"format": format}
+        if threshold_n is not None:
+            params["threshold_n"] = float(threshold_n)
+        path = f"{API_PREFIX}/sessions/{int(session_id)}/report"
+        if format == "html":
+            return self._send("GET", path, params=params).text
+        return self._json("GET", f"/sessions/{int(session_id)}/report", params=params)
+
     def download_recording_report(self, name: str, path: str | Path,
                                   threshold_n: float | None = None) -> Path:
         """Write recording ``name``'s report as a self-contained HTML page to ``path``."""

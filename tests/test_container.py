@@ -221,6 +221,10 @@ def test_readme_quick_start_in_a_container(podman, image, tmp_path):
         assert page.status_code == 200 and "/docs/assets/" in page.text
         asset = page.text.split('src="', 1)[1].split('"', 1)[0]
         assert httpx.get(f"{http}{asset}", timeout=10.0).status_code == 200
+        # So is the live view, with the scripts the image's build fetched and verified.
+        assert httpx.get(f"{http}/ui/", timeout=10.0).status_code == 200
+        for script in ("three/three.module.js", "three/three.core.js", "uplot/uPlot.iife.min.js"):
+            assert httpx.get(f"{http}/ui/vendor/{script}", timeout=10.0).status_code == 200
         # The kernels came from the image: nothing was compiled into the cache at start.
         changed = podman("diff", name).stdout
         assert "/var/cache/burrforce" not in changed, changed

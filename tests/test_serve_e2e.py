@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import json
 import os
+import queue
+import signal
 import subprocess
 import sys
+import threading
+import time
 
 import httpx
 import numpy as np
@@ -69,3 +73,41 @@ def test_serve_cut_change_us_over_rest_and_export(tmp_path):
     assert code == 0, out
     assert "stopped" in out
     assert not conn.exists()
+
+
+def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
+    serve = spawn_serve(tmp_path, "--demo", "--bone", "phantom:workpiece")
+    lines: queue.Queue[str] = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(x) for x in serve.proc.stdout],
+                              daemon=True)
+    reader.start()
+    try:
+        token = (tmp_path / "data" / "token").read_text().strip()
+        c = serve.connection
+        # The first start shows the token, so its link carries it (in the fragment).
+        assert f"VIEW  {c.http_url}/ui/#token={token}" in serve.banner
+        assert httpx.get(c.http_url + "/ui/", timeout=30.0).status_code == 200
+        deadline = time.monotonic() + 120
+        seen = ""
+        while "watch it in the live view" not in seen:
+            seen += lines.get(timeout=max(deadline - time.monotonic(), 0.1))
+        assert "--demo finished (exit 0)" in seen
+        with httpx.Client(base_url=c.http_url + "/v1", timeout=30.0,
+                          headers={"Authorization": f"Bearer {token}"}) as api:
+            def removed() -> float:
+                return sum(api.get(f"/sessions/{c.session}/state").json()
+                           ["removed_mm3"].values())
+            first = removed()
+            assert first > 1.0
+            # Another groove beside the first, a few seconds later, with nobody asking.
+            deadline = time.monotonic() + 60
+            while removed() < 1.5 * first:
+                assert time.monotonic() < deadline, "the demo cut no second groove"
+                time.sleep(0.5)
+    finally:
+        serve.proc.send_signal(signal.SIGTERM)
+        code = serve.proc.wait(timeout=60)
+        reader.join(timeout=10)
+    rest = "".join(lines.queue)
+    assert code == 0, rest
+    assert "--demo: stopped" not in rest

@@ -18,6 +18,7 @@ from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
 from .sources import SourceError
 from .supervisor import Supervisor
+from .ui_pages import add_ui_pages
 
 API_PREFIX = "/v1"
 _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
@@ -50,9 +51,12 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         docs_url=None, redoc_url=None,
     )
     add_docs_pages(app)
+    add_ui_pages(app)
     app.state.plane = plane
     app.state.stats = stats
     app.state.token = token
+    # The telemetry routes read the loop's state from it (routes_telemetry.loop_state).
+    app.state.supervisor = supervisor
     if plane.config.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(plane.config.cors_origins),
                            allow_methods=["*"], allow_headers=["Authorization",

@@ -30,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .config import is_loopback
+from .daemon import start_daemon, stop_daemon
 from .journal_carve import CarveLog, apply_log, read_log, write_atomic
 from .manager import (
     ApiError,
@@ -60,6 +61,7 @@ def session_record(session: ManagedSession, stream: int | None) -> dict:
 
     params = parameters_view(session)
     params.pop("burr_calibrated")  # follows from the burr
+    params.pop("burr_profile_mm")  # likewise
     for name in ("us_n_mm2", "k", "primary_material_name"):  # in the material changes
         params.pop(name)
     source = session.source
@@ -103,16 +105,12 @@ class Journal:
         self.last_error: str | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="burrforce-journal",
-                                        daemon=True)
-        self._thread.start()
+        self._thread = start_daemon(self._run, "burrforce-journal")
 
     def stop(self) -> None:
         """A last pass, then stop: a clean shutdown keeps every session for the next start."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(10.0)
-            self._thread = None
+        stop_daemon(self._stop, self._thread)
+        self._thread = None
         self.write()
 
     def _run(self) -> None:

@@ -47,6 +47,7 @@ from ..model.shapes import Burr, Sphere
 from ..model.vibration import VibrationParams
 from .config import ServeConfig
 from .generation import bone_generation, next_generation
+from .history import TelemetryHistory
 from .models import Features, Parameters
 from .sources import BoneSource, SourceError, SourceRoots, resolve, snapshot_path
 from .telemetry import TelemetryReader
@@ -237,6 +238,8 @@ class ControlPlane:
         remove_stale_run_directories(self.run_dir.parent, keep=self.run_dir)
         #: Each session's live state, mapped from the hot loop (``telemetry``).
         self.telemetry = TelemetryReader(self.run_dir)
+        #: Each ready session's telemetry sampled at 100 Hz, for its live report (``history``).
+        self.history = TelemetryHistory(self, self.telemetry)
         self.sessions: dict[int, ManagedSession] = {}
         self.jobs: dict[str, Job] = {}
         self._lock = threading.RLock()
@@ -246,6 +249,7 @@ class ControlPlane:
 
         #: Local haptic devices driven from sessions (``routes_devices``).
         self.devices = DeviceAttachments()
+        self.history.start()
 
     # -- workers ------------------------------------------------------------------------------
     @property
@@ -353,6 +357,7 @@ class ControlPlane:
                 # Now, before a new session may take the id: it must get a file of its own
                 # (the old loop keeps writing its map of the unlinked one until removed).
                 self.telemetry.discard(session_id)
+                self.history.drop(session_id)
             # Now, not at the journal's next pass: a stop meanwhile must not resume it.
             shutil.rmtree(journal_dir(self.data_dir) / str(session_id), ignore_errors=True)
             try:
@@ -880,6 +885,7 @@ class ControlPlane:
         """Stop recordings, forget sessions, remove the shared bones (the caller stops the
         loop)."""
         self._loads.shutdown(wait=False, cancel_futures=True)
+        self.history.stop()
         self.devices.close()
         for session in list(self.sessions.values()):
             try:

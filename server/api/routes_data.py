@@ -11,7 +11,7 @@ from pathlib import Path as FilePath
 from typing import Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
+from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
@@ -23,11 +23,12 @@ from ..bone.loaders import save_bone
 from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
 from ..record import RecordingError
-from ..report import DEFAULT_THRESHOLD_N, render_html, report_from_recording
+from ..report import report_from_recording
 from . import storage
 from .generation import bone_generation
 from .manager import ApiError, ControlPlane
 from .models import MAX_BONE_VERSION, RecordingStart, RestoreRequest, SnapshotRequest
+from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
 from .routes_sessions import SessionPath, _plane, wait_for
 
 router = APIRouter()
@@ -352,24 +353,11 @@ def recordings(request: Request) -> list[dict]:
     return storage.list_recordings(_plane(request))
 
 
-#: The report page has no script and loads nothing: it may only style itself and show
-#: data: images.
-REPORT_CSP = "default-src 'none'; style-src 'unsafe-inline'; img-src data:"
-
-
 # Before the download route, whose ``{name:path}`` would take ``NAME/report`` as a name.
-@router.get("/recordings/{name}/report", tags=["recordings"],
-            responses={200: {"description": "the session report: JSON "
-                                            "(``SessionReport.to_dict``) or a self-contained "
-                                            "HTML page",
-                             "content": {"text/html": {"schema": {"type": "string"}}}}})
+@router.get("/recordings/{name}/report", tags=["recordings"], responses=REPORT_RESPONSES)
 def recording_report(request: Request, name: str = RecordingName,
-                     format: Literal["json", "html"] = Query(
-                         "json", description="json, or html: a page for an instructor"),
-                     threshold_n: float = Query(
-                         DEFAULT_THRESHOLD_N, gt=0.0, allow_inf_nan=False,
-                         description="the hand-force threshold, N: the report counts the "
-                                     "time above it")) -> Response:
+                     format: Literal["json", "html"] = ReportFormat,
+                     threshold_n: float = ReportThreshold) -> Response:
     """A session report of the recording: duration, time cutting, bone removed per material,
     forbidden contacts (time, structure, position), the hand force (peak, mean in contact,
     time above ``threshold_n``) and its plot. The recording is replayed for the volumes and
@@ -382,10 +370,7 @@ def recording_report(request: Request, name: str = RecordingName,
         report = report_from_recording(path, threshold_n)
     except RecordingError as exc:
         raise ApiError(422, f"recording {path.name!r}: {exc.problem}") from None
-    if format == "html":
-        return HTMLResponse(render_html(report),
-                            headers={"Content-Security-Policy": REPORT_CSP})
-    return JSONResponse(report.to_dict())
+    return report_response(report, format)
 
 
 @router.get("/recordings/{name:path}", tags=["recordings", "storage"],

@@ -108,10 +108,35 @@ def _reason(text: str) -> str:
     return text.encode()[:120].decode(errors="ignore")
 
 
+#: The WebSocket subprotocol a browser offers with its token as ``bearer.TOKEN`` (a browser
+#: can set no header, and a token in the URL ends up in access logs).
+SUBPROTOCOL = "burrforce"
+_BEARER_PROTOCOL = "bearer."
+
+
+def _offered(ws: WebSocket) -> list[str]:
+    return [p.strip() for p in ws.headers.get("sec-websocket-protocol", "").split(",")
+            if p.strip()]
+
+
+async def accept(ws: WebSocket) -> None:
+    """Accept the handshake, choosing ``SUBPROTOCOL`` when the client offered it (a browser
+    fails a handshake that does not choose one of the subprotocols it offered)."""
+    await ws.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in _offered(ws) else None)
+
+
 def _authorized(ws: WebSocket, token: str | None) -> bool:
+    """The bearer token from the Authorization header, the ``bearer.TOKEN`` subprotocol or
+    ``?token=``."""
     expected = ws.app.state.token.encode()
     header = ws.headers.get("authorization", "")
-    given = header[7:] if header[:7].lower() == "bearer " else (token or "")
+    offered = [p[len(_BEARER_PROTOCOL):] for p in _offered(ws) if p.startswith(_BEARER_PROTOCOL)]
+    if header[:7].lower() == "bearer ":
+        given = header[7:]
+    elif offered:
+        given = offered[0]
+    else:
+        given = token or ""
     return hmac.compare_digest(given.encode(), expected)
 
 
@@ -158,6 +183,32 @@ class WsQuery:
                    integer("format_version", 1, 1, FORMAT_VERSION))
 
 
+#: Mesh WebSockets open at once, server-wide: each meshes the bone on the control plane's
+#: threads; one more is closed with 4503.
+MAX_MESH_SOCKETS = 32
+
+
+async def take_socket_slot(ws: WebSocket, kind: str, limit: int) -> bool:
+    """Counts an accepted push WebSocket of ``kind`` against the server's ``limit``; at the
+    limit, closes it with 4503 and a reason and answers False. Give the slot back with
+    :func:`release_socket_slot`. No lock: one event loop runs every handler."""
+    state = ws.app.state
+    counts = getattr(state, "push_sockets", None)
+    if counts is None:
+        counts = state.push_sockets = {}
+    open_now = counts.get(kind, 0)
+    if open_now >= limit:
+        await ws.close(4503, _reason(f"{open_now} {kind} WebSockets are open, the server's "
+                                     f"limit ({limit}): close one"))
+        return False
+    counts[kind] = open_now + 1
+    return True
+
+
+def release_socket_slot(ws: WebSocket, kind: str) -> None:
+    ws.app.state.push_sockets[kind] -= 1
+
+
 def watch_disconnect(ws: WebSocket) -> tuple[asyncio.Event, asyncio.Task]:
     """An event set when the client of a push-only WebSocket leaves, and the task that
     watches for it (cancel it when done). The client sends nothing; a receive returns only
@@ -182,7 +233,7 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     Authorization header)."""
     # Accepted first: a close before the handshake reaches the client as a bare HTTP 403,
     # without the code and reason that say what was wrong.
-    await ws.accept()
+    await accept(ws)
     try:
         query = WsQuery.parse(ws.query_params)
     except ValueError as exc:
@@ -190,7 +241,7 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
         return
     if not _authorized(ws, query.token):
         await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
-                             "or ?token=TOKEN)")
+                             "the subprotocol bearer.TOKEN, or ?token=TOKEN)")
         return
     if not session_id.isdigit() or int(session_id) >= 1 << 32:
         await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
@@ -205,7 +256,6 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     since, chunk_bricks, frame, winding = (query.since, query.chunk_bricks, query.frame,
                                            query.winding)
     interval_ms = query.interval_ms
-    gone, watcher = watch_disconnect(ws)
     req = _request(session, chunk_bricks, frame, winding)
     generation = bone_generation(session)  # before the reader: generation.py
     reader = session.reader
@@ -213,6 +263,9 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
         since = None
     sent_for: int | None = None  # the bone version the client was last brought up to
     loop = asyncio.get_running_loop()
+    if not await take_socket_slot(ws, "mesh", MAX_MESH_SOCKETS):
+        return
+    gone, watcher = watch_disconnect(ws)
     try:
         while not gone.is_set():
             started = loop.time()
@@ -257,3 +310,4 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
             await ws.close(1013, "the bone was busy; reconnect")
     finally:
         watcher.cancel()
+        release_socket_slot(ws, "mesh")

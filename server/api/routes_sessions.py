@@ -7,6 +7,7 @@ from dataclasses import asdict
 from fastapi import APIRouter, Path, Query, Request, Response
 
 from ..bone import Material
+from ..model.shapes import profile_points
 from .manager import ApiError, ControlPlane, ManagedSession
 from .models import (
     BoneRequest,
@@ -47,6 +48,10 @@ def session_view(plane: ControlPlane, s: ManagedSession, key: bool = False) -> d
         "frame": s.config.frame,
         "features": s.features.model_dump(),
         "output": s.output,
+        # The haptic device the force is coupled for, and whether a local device loop
+        # (PUT …/device) drives this session.
+        "device": None if s.device is None else s.device.name,
+        "device_attached": plane.devices.attached(s.id),
         "recording": s.recording["name"] if s.recording else None,
         "created": s.created_s,
     }
@@ -68,6 +73,9 @@ def parameters_view(s: ManagedSession) -> dict:
         "fd_N": s.vibration.fd_N, "g": s.vibration.g, "harmonic": s.vibration.harmonic,
         "burr": s.params.shape.to_dict(),
         "burr_calibrated": s.params.shape.cutter.calibrated,
+        # For drawing the burr: its generatrix, tip to top, as (ρ, z) mm in the tool frame
+        # (z along the axis toward the handle, origin at the burr's reference centre).
+        "burr_profile_mm": profile_points(s.params.shape.shape.profile()).round(4).tolist(),
         "radius_mm": s.params.radius_mm, "spin": s.params.spin,
         "min_cutting_rpm": s.params.min_cutting_rpm,
         "shaft_radius_mm": s.shaft.radius_mm, "shaft_length_mm": s.shaft.length_mm,

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from ..hotloop import HotLoopConfig, HotLoopProcess
+from .daemon import start_daemon, stop_daemon
 from .manager import ControlPlane
 from .metrics import LoopStats
 
@@ -111,15 +112,11 @@ class Supervisor:
 
     # -- lifetime ---------------------------------------------------------------------------
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="burrforce-supervisor",
-                                        daemon=True)
-        self._thread.start()
+        self._thread = start_daemon(self._run, "burrforce-supervisor")
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(10.0)
-            self._thread = None
+        stop_daemon(self._stop, self._thread)
+        self._thread = None
         with self._spare_lock:
             spare, self.spare = self.spare, None
         if spare is not None:

@@ -14,10 +14,17 @@ may pair one packet's pose with the previous packet's reply.
 Round trip: the server does not see when its reply reaches the client. ``residence_us`` is
 the server's own part, t_send − t_recv of the packet (its monotonic clock, µs); the reply
 echoes the client's ``t_client_us``, so the client's round trip is the client's to measure.
+
+Staleness: the hot loop stamps t_recv with ``time.monotonic_ns()``, the system-wide
+CLOCK_MONOTONIC this process's ``time.monotonic()`` reads too, so ``age_s`` (now − t_recv)
+compares the two processes' times directly. While the supervisor restarts a loop the file
+keeps the dead loop's last packet: ``age_s`` grows and ``loop`` (the caller's, from the
+supervisor) says why.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import mmap
@@ -31,7 +38,17 @@ import numpy as np
 
 from ...proto.messages import ERROR_NAMES, STATUS_NAMES
 from ..hotloop import telemetry as block
-from ..hotloop.stages import K_REPLY, M_REPLY, M_STATUS, W_AXIS, W_LAST_FORCE, W_P, W_RPM, W_V
+from ..hotloop.stages import (
+    K_A,
+    K_REPLY,
+    M_REPLY,
+    M_STATUS,
+    W_AXIS,
+    W_LAST_FORCE,
+    W_P,
+    W_RPM,
+    W_V,
+)
 from ..hotloop.wire import (
     R_AMPLITUDE,
     R_BONE_VERSION,
@@ -64,11 +81,12 @@ class TelemetrySample:
         session_id: the session.
         installs: how many times a session was installed in this file (changes when the
             hot loop restarts or the bone is reloaded).
-        packet: the raw output answered the session's latest packet (False before the
-            first, and whenever the coupled or limited output or a recording answered it:
-            those keep no reply values; ``seq``, ``t_client_us`` and ``error`` are then
-            None and ``residence_us`` 0; the pose fields and ``hand_force_magnitude_N`` are
-            live either way).
+        packet: a reply to the session's latest packet is kept (False before the first
+            packet, and if building a reply failed: ``seq``, ``t_client_us`` and ``error``
+            are then None and ``residence_us`` 0; the pose fields and
+            ``hand_force_magnitude_N`` are live either way). Every output keeps its reply:
+            the raw output's kernel, and the coupled and limited outputs and recording
+            sessions, whose replies are built in Python (``Session._keep_reply``).
         seq, t_client_us: the packet's sequence number and client time (echoed by the reply).
         t_recv_s: when the server received it, its monotonic clock, s.
         residence_us: t_send − t_recv, the server's part of the round trip, µs.
@@ -76,9 +94,9 @@ class TelemetrySample:
         status: the reply's STATUS_* bits; ``status_names`` decoded. Only STATUS_STALE and
             STATUS_SLOW_SPINDLE while ``reply_current`` is False.
         reply_current: the reply's values (force, vibration, bone version, ...) are this
-            packet's. False for the coupled and device-limited outputs and while recording,
-            whose replies are built in Python and not kept (``hand_force_magnitude_N`` is).
+            packet's (False as ``packet``, or for a read torn across two packets).
         force_N: the reply's force (cut + shaft), the session's engine axes, N.
+        force_server_N: the same force in the server frame (the frame of ``centre_mm``), N.
         resistive_N: the cutting force's (feed, lateral, normal) components, N.
         power_W: cutting power, W.
         hand_force_magnitude_N: |force| of the reply the hand got, N (every output).
@@ -93,6 +111,10 @@ class TelemetrySample:
             when it cannot tell which is latest).
         tick_us_p50, tick_us_p99: over the kept tick times (up to 8192), µs (None: none);
             recomputed at most every PERCENTILES_EVERY_S.
+        age_s: how long ago the server received the packet, s, on the monotonic clock both
+            processes read (None without ``packet``: no reply kept yet).
+        loop: the supervisor's state of the hot loop serving the session ("running",
+            "restarting", "lost", "down"), when the caller knows it (None: not asked).
     """
 
     session_id: int
@@ -107,6 +129,7 @@ class TelemetrySample:
     status_names: list[str]
     reply_current: bool
     force_N: list[float] | None
+    force_server_N: list[float] | None
     resistive_N: list[float] | None
     power_W: float | None
     hand_force_magnitude_N: float
@@ -121,6 +144,8 @@ class TelemetrySample:
     tick_us_last: float | None
     tick_us_p50: float | None
     tick_us_p99: float | None
+    age_s: float | None = None
+    loop: str | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -132,16 +157,24 @@ class TelemetrySample:
                 self.hand_force_magnitude_N)
 
 
-class _Mapped:
-    """One telemetry file, mapped, and the tick ring as last seen (to find the newest)."""
+class TickRing:
+    """What a reader remembers of a session's tick ring, to find its newest entry."""
 
-    def __init__(self, path: Path) -> None:
-        with open(path, "rb") as f:
-            self.map = mmap.mmap(f.fileno(), block.FILE_BYTES, access=mmap.ACCESS_READ)
+    def __init__(self) -> None:
         self.ticks: np.ndarray | None = None
         self.ticks_of = -1  # the install the kept ring is of
+        self.last: int | None = None  # the newest entry found, ns
         self.percentiles: tuple[float, float] | None = None
         self.percentiles_s = -math.inf
+
+
+class _Mapped(TickRing):
+    """One telemetry file, mapped, and the tick ring as last seen."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        with open(path, "rb") as f:
+            self.map = mmap.mmap(f.fileno(), block.FILE_BYTES, access=mmap.ACCESS_READ)
 
 
 class TelemetryReader:
@@ -183,9 +216,11 @@ class TelemetryReader:
         """Forget the session's file (unmapped, removed)."""
         with self._lock:
             mapped = self._maps.pop(session_id, None)
+            # Under the lock: a sample between the two would map the old file again and
+            # keep it for a new session under the same id.
+            self._file(session_id).unlink(missing_ok=True)
         if mapped is not None:
             mapped.map.close()
-        self._file(session_id).unlink(missing_ok=True)
 
     def close(self) -> None:
         with self._lock:
@@ -193,9 +228,12 @@ class TelemetryReader:
         for mapped in maps.values():
             mapped.map.close()
 
-    def sample(self, session_id: int) -> TelemetrySample | None:
+    def sample(self, session_id: int, *, ticks: bool = True,
+               loop: str | None = None) -> TelemetrySample | None:
         """The session's latest packet, or None before a session was installed in its file
-        (or when it has none)."""
+        (or when it has none). ``ticks=False`` skips the tick ring (the tick_us fields are
+        None): most of a sample's cost, which a history sampled at 100 Hz does not need.
+        ``loop`` is passed through to the sample."""
         with self._lock:
             mapped = self._maps.get(session_id)
             if mapped is None:
@@ -203,9 +241,10 @@ class TelemetryReader:
                 if not p.exists():
                     return None
                 mapped = self._maps[session_id] = _Mapped(p)
-            return self._read(session_id, mapped)
+            return self._read(session_id, mapped, ticks, loop)
 
-    def _read(self, session_id: int, mapped: _Mapped) -> TelemetrySample | None:
+    def _read(self, session_id: int, mapped: _Mapped, with_ticks: bool,
+              loop: str | None) -> TelemetrySample | None:
         head = block.header(mapped.map)
         for _ in range(READ_ATTEMPTS):
             state = int(head[block.H_STATE])
@@ -218,41 +257,50 @@ class TelemetryReader:
             if (int(head[block.H_STATE]), int(m[M_REPLY + R_SEQ]),
                     int(m[M_REPLY + R_T_RECV])) == (state, *stamp):
                 break
-        tick_last, p50, p99 = self._ticks(mapped, installs, ticks.copy())
-        return _sample(session_id, installs, g, kc, mc, tick_last, p50, p99)
+        tick_last = p50 = p99 = None
+        if with_ticks:
+            tick_last, p50, p99 = newest_tick(mapped, installs, ticks.copy())
+        sample = _sample(session_id, installs, g, kc, mc, tick_last, p50, p99)
+        return dataclasses.replace(sample, loop=loop) if loop is not None else sample
 
-    @staticmethod
-    def _ticks(mapped: _Mapped, installs: int,
-               ticks: np.ndarray) -> tuple[float | None, float | None, float | None]:
-        """(latest, p50, p99) of the tick ring, µs. The ring's head is the loop's Python
-        counter, not shared: the newest entry is found as the end of what changed since this
-        reader's last look (or, on a ring not yet full, the last filled one: it is zeroed
-        when the session is installed and filled in order)."""
-        filled = ticks[ticks > 0]
-        if filled.size == 0:
-            mapped.ticks, mapped.ticks_of = ticks, installs
-            mapped.percentiles = None
-            return None, None, None
-        now = time.monotonic()
-        if (mapped.percentiles is None or mapped.ticks_of != installs
-                or now - mapped.percentiles_s >= PERCENTILES_EVERY_S):
-            p50, p99 = np.percentile(filled, (50.0, 99.0)) / 1e3
-            mapped.percentiles, mapped.percentiles_s = (float(p50), float(p99)), now
-        p50, p99 = mapped.percentiles
-        last = None
-        prev = mapped.ticks if mapped.ticks_of == installs else None
-        if filled.size < ticks.size:
-            last = int(ticks[filled.size - 1])
-        elif prev is not None:
-            changed = ticks != prev
-            if changed.any() and not changed.all():
-                if changed[0] and changed[-1]:  # the changed run wraps: it ends before a gap
-                    end = int(np.argmin(changed)) - 1
-                else:
-                    end = int(np.flatnonzero(changed)[-1])
-                last = int(ticks[end])
-        mapped.ticks, mapped.ticks_of = ticks, installs
-        return (None if last is None else last / 1e3), p50, p99
+
+def newest_tick(ring: TickRing, installs: int,
+                ticks: np.ndarray) -> tuple[float | None, float | None, float | None]:
+    """(latest, p50, p99) of the tick ring ``ticks`` (int64 (TICK_TIMES_KEPT,), ns), µs;
+    ``ring`` remembers the ring between calls. The ring's head is the loop's Python
+    counter, not shared: the newest entry is found as the end of what changed since this
+    reader's last look (or, on a ring not yet full, the last filled one: it is zeroed
+    when the session is installed and filled in order). Nothing changed: the newest found
+    before. None when it cannot tell: the whole ring changed (a lap or more since the
+    last look). Wrong only when a new entry equals the one this reader last saw in its
+    slot (ns times rarely repeat), which hides where the new entries end."""
+    filled = ticks[ticks > 0]
+    if filled.size == 0:
+        ring.ticks, ring.ticks_of, ring.last = ticks, installs, None
+        ring.percentiles = None
+        return None, None, None
+    now = time.monotonic()
+    if (ring.percentiles is None or ring.ticks_of != installs
+            or now - ring.percentiles_s >= PERCENTILES_EVERY_S):
+        p50, p99 = np.percentile(filled, (50.0, 99.0)) / 1e3
+        ring.percentiles, ring.percentiles_s = (float(p50), float(p99)), now
+    p50, p99 = ring.percentiles
+    last = None
+    prev = ring.ticks if ring.ticks_of == installs else None
+    if filled.size < ticks.size:
+        last = int(ticks[filled.size - 1])
+    elif prev is not None:
+        changed = ticks != prev
+        if not changed.any():
+            last = ring.last
+        elif not changed.all():
+            if changed[0] and changed[-1]:  # the changed run wraps: it ends before a gap
+                end = int(np.argmin(changed)) - 1
+            else:
+                end = int(np.flatnonzero(changed)[-1])
+            last = int(ticks[end])
+    ring.ticks, ring.ticks_of, ring.last = ticks, installs, last
+    return (None if last is None else last / 1e3), p50, p99
 
 
 def _server(g: np.ndarray, v: np.ndarray, point: bool) -> list[float]:
@@ -276,6 +324,7 @@ def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.
     # outputs set only W_LAST_FORCE). Equal to rounding, not bit for bit: numba's kernel and
     # this may sum the squares differently (a dot product may fuse them).
     f0, f1, f2 = (float(x) for x in force)
+    age = time.monotonic() - t_recv * 1e-6 if packet else None
     current = packet and math.isclose(math.sqrt(f0 * f0 + f1 * f1 + f2 * f2), hand,
                                       rel_tol=1e-12, abs_tol=1e-300)
     status = int(ri[R_STATUS]) if current else int(m[M_STATUS])
@@ -289,6 +338,9 @@ def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.
         status_names=[name for bit, name in STATUS_NAMES.items() if status & bit],
         reply_current=current,
         force_N=[float(x) for x in force] if current else None,
+        # The reply turned the grid-frame force into engine axes with Aᵀ (A: engine → grid).
+        force_server_N=_server(g, k[K_A:K_A + 9].reshape(3, 3) @ force, False)
+        if current else None,
         resistive_N=[float(x) for x in rf[R_RESISTIVE:R_RESISTIVE + 3]] if current else None,
         power_W=float(rf[R_POWER]) if current else None,
         hand_force_magnitude_N=hand,
@@ -300,4 +352,4 @@ def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.
         velocity_mm_s=_server(g, k[W_V:W_V + 3], False),
         bone_version=int(ri[R_BONE_VERSION]) if current else None,
         removed_mm3=float(rf[R_REMOVED]) if current else None,
-        tick_us_last=tick_last, tick_us_p50=p50, tick_us_p99=p99)
+        tick_us_last=tick_last, tick_us_p50=p50, tick_us_p99=p99, age_s=age)

@@ -17,7 +17,9 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
 - ``watched``: the same cut as ``cutting`` on its own copy of the bone, while another
   process samples its telemetry at 60 Hz and encodes each sample as the WebSocket does
   (``bench.telemetry_watch``, paused during every other run's chunks): what a live view
-  costs. Both keep their per-packet state in a telemetry file, as under ``serve``.
+  costs. Both keep their per-packet state in a telemetry file, as under ``serve``;
+- ``page closed`` / ``page open``: the browser view itself, open and closed on a cutting
+  session of the real stack (``bench.latency_page``; ``--no-page`` skips it).
 
 Each paced at 1 kHz (the haptic rate; sends on an absolute schedule) and back-to-back. A
 round trip runs from the client stamping its packet (before encoding, as a real client) to
@@ -408,8 +410,12 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"{'met' if result['p99_us'] <= 500 else 'NOT met'}.",
         "",
         f"Server counters: {json.dumps(result['server_counters'])}",
-        "",
     ]
+    if "page" in result:
+        from . import latency_page
+
+        lines += latency_page.markdown(result["page"])
+    lines.append("")
     md_path = out / "latency.md"
     md_path.write_text("\n".join(lines))
     return md_path, json_path
@@ -427,6 +433,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    default=20_000, help="round trips per back-to-back run. Default 20000")
     p.add_argument("--voxel-mm", type=float_in(0.05, 0.5, "voxel size", "mm"), default=0.1,
                    help="workpiece voxel size for the cutting run, mm. Default 0.1")
+    p.add_argument("--no-page", action="store_true",
+                   help="skip the live-view part (the browser view open and closed on a "
+                        "session of the real stack; needs playwright and /usr/bin/chromium)")
     p.add_argument("--json", action="store_true",
                    help="print the results as JSON on stdout (progress goes to stderr)")
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
@@ -438,7 +447,22 @@ def main(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
+    from . import latency_page
+
+    cpus = os.sched_getaffinity(0)  # run() pins this process; the page part starts unpinned
     result = run(args.samples, args.samples_b2b, args.voxel_mm, progress=say)
+    failed = False
+    if args.no_page:
+        result["page"] = {"skipped": "--no-page"}
+    else:
+        try:
+            result["page"] = latency_page.run(args.samples, args.voxel_mm, cpus=cpus,
+                                              progress=say)
+        except Exception as exc:  # the other modes' results are written all the same
+            failed = True
+            result["page"] = {"skipped": f"failed: {type(exc).__name__}: {exc}"}
+    if result["page"].get("skipped"):
+        say(f"live view not measured: {result['page']['skipped']}")
     md, js = write_results(result, args.out)
     if args.json:
         print(json.dumps({k: v for k, v in result.items() if k != "runs"} | {
@@ -446,4 +470,4 @@ def main(args: argparse.Namespace) -> int:
     else:
         print(md.read_text())
     say(f"results written to {md} and {js}")
-    return 0
+    return 1 if failed else 0

@@ -257,7 +257,8 @@ def main(args: argparse.Namespace) -> int:
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device, _pool_line(plane, session))
             if args.demo:
-                _run_demo(say, context["path"], done, session.bone_info)
+                _run_demo(say, context["path"], done, session.bone_info, stack.url,
+                          token, session.id)
             _report(stack.stats, session.id, done, say, plane.devices)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
@@ -316,6 +317,9 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     if pool:
         say(f"  {pool}")
     say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")
+    # The fragment never reaches the server or its logs; the page keeps the token for the
+    # tab and drops it from the address bar. A token not shown now stays out of the link.
+    say(f"  VIEW  {ui_link(url, token if new_token else None)}   (live view in a browser)")
     if new_token:
         say(f"  token {token}   (new: shown only now; kept in "
             f"{Path(config.data_dir).expanduser() / TOKEN_FILE})")
@@ -369,19 +373,67 @@ def demo_start_mm(bone_info: dict | None, length_mm: float = 10.0) -> tuple[floa
     return round(float(centre[0]) - length_mm / 2, 2), round(float(centre[1]), 2)
 
 
-def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None) -> None:
+def ui_link(url: str, token: str | None) -> str:
+    """The live view's address, with the token in the fragment when it may be shown."""
+    return f"{url}/ui/" + (f"#token={token}" if token else "")
+
+
+#: After its first groove, --demo cuts another beside it this often (s), so the live view
+#: has a groove being cut whenever someone opens it.
+DEMO_EVERY_S = 6.0
+#: Lanes of the later grooves, mm from the first (y); the bone is reset after the last.
+DEMO_LANES_MM = (3.0, -3.0, 6.0, -6.0)
+
+
+def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None,
+              url: str, token: str, session_id: int) -> None:
+    import httpx
+
     say("--demo: running `burrforce client demo` against this server...")
-    env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
     x_mm, y_mm = demo_start_mm(bone_info)
+    code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
+    if code is None:
+        return
+    say(f"--demo finished (exit {code}); the server keeps running.")
+    say(f"--demo: watch it in the live view ({url}/ui/, the VIEW link above). A groove "
+        f"beside the last every {DEMO_EVERY_S:.0f} s; the bone is reset after "
+        f"{len(DEMO_LANES_MM) + 1} grooves.")
+    lane = 0
+    while not done.wait(DEMO_EVERY_S):
+        if lane == len(DEMO_LANES_MM):
+            lane = 0
+            try:
+                httpx.post(f"{url}/v1/sessions/{session_id}/reset",
+                           headers={"Authorization": f"Bearer {token}"},
+                           params={"wait": "true"}, timeout=30.0).raise_for_status()
+            except httpx.HTTPError as exc:
+                say(f"--demo: stopped: could not reset the bone ({exc})")
+                return
+            code = _demo_groove(conn_path, done, x_mm, y_mm)
+        else:
+            code = _demo_groove(conn_path, done, x_mm, y_mm + DEMO_LANES_MM[lane])
+            lane += 1
+        if code is None:
+            return
+        if code != 0:
+            say(f"--demo: stopped: a groove failed (exit {code})")
+            return
+
+
+def _demo_groove(conn_path: Path, done: threading.Event, x_mm: float, y_mm: float,
+                 quiet: bool = True) -> int | None:
+    """One `burrforce client demo` groove; its exit status, or None when the server stops."""
+    env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
+    out = subprocess.DEVNULL if quiet else None
     proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo",
                              "--x-mm", str(x_mm), "--y-mm", str(y_mm)],
-                            env=env, stdin=subprocess.DEVNULL)
+                            env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
     while proc.poll() is None:
         if done.wait(0.1):
             proc.terminate()
             proc.wait()
-            return
-    say(f"--demo finished (exit {proc.returncode}); the server keeps running.")
+            return None
+    return proc.returncode
 
 
 def _start_device(say, plane, session, args: argparse.Namespace) -> None:

@@ -4,9 +4,11 @@
   contacts, the hand force (peak, mean, time above a threshold) and a plot-sized force series;
   JSON with ``to_dict()``.
 - :func:`report_from_recording`: one from a ``.burrrec`` recording (its replies and a replay).
+- :func:`report_from_live`: one from a live session's sampled telemetry and its state.
 - :func:`render_html`: a self-contained page (inline CSS and SVG, no script).
 """
 
+from .from_live import report_from_live
 from .from_recording import report_from_recording
 from .html import render_html
 from .model import DEFAULT_THRESHOLD_N, ForbiddenContact, SessionReport, check_threshold
@@ -20,5 +22,6 @@ __all__ = [
     "check_threshold",
     "downsample_min_max",
     "render_html",
+    "report_from_live",
     "report_from_recording",
 ]

@@ -44,8 +44,10 @@ def render_html(report: SessionReport) -> str:
         ("Mean hand force in contact", f"{r.hand_force_mean_N:.2f} N", ""),
         (f"Time above {r.threshold_N:g} N", f"{r.time_above_threshold_s:.2f} s", ""),
     ]
-    sub = [f"{r.source_kind} {r.source}"]
-    if r.session_id is not None:
+    # A live session's source is already "session N".
+    live = r.source_kind == "session"
+    sub = [r.source if live else f"{r.source_kind} {r.source}"]
+    if r.session_id is not None and not live:
         sub.append(f"session {r.session_id}")
     if r.started_at:
         sub.append(f"started {r.started_at}")
@@ -86,8 +88,9 @@ def render_html(report: SessionReport) -> str:
     out.append(f'<p class="key"><span style="background:{CUT_FILL}"></span>cutting'
                f'<span style="border-top:2px dashed {THRESHOLD}"></span>threshold'
                f'<span style="background:{FORBIDDEN}"></span>forbidden contact</p>')
-    out.append(f"<p>The force the replies carried (what the hand was sent), {r.ticks} ticks; "
-               "the mean is over the ticks with the burr or shaft in bone.</p>")
+    counted = "samples of the stream" if live else "ticks"
+    out.append(f"<p>The force the replies carried (what the hand was sent), {r.ticks} "
+               f"{counted}; the mean is over the {counted} with the burr or shaft in bone.</p>")
     if r.notes:
         out.append("<h2>Notes</h2><ul class=\"notes\">")
         out += [f"<li>{e(n)}</li>" for n in r.notes]

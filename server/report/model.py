@@ -46,14 +46,13 @@ class SessionReport:
     hard the hand pushed.
 
     Where each field comes from. For a recording (``from_recording``): the recorded rows and
-    a replay of them (``record.replay``). A live session would fill the same fields from:
-    ``removed_mm3_by_material`` and ``forbidden_contacts`` from ``/state`` (its
-    ``removed_mm3`` per material and its ``events`` with ``time_s`` on the server's monotonic
-    clock, ``label``, ``material`` and ``position_mm``: subtract the session's first tick
-    time); the per-tick time, status and hand force (``t_s``, ``status``, ``hand_force_N`` of
-    :meth:`from_ticks`) from the telemetry channel's force history; ``started_at`` from when
-    the session's stream began. With a bounded history, ``ticks`` and the times cover what the
-    history holds, and ``notes`` should say so.
+    a replay of them (``record.replay``). For a live session (``from_live``):
+    ``removed_mm3_by_material`` and ``forbidden_contacts`` from the session engine's state
+    (``/state``'s ``removed_mm3`` and ``events``, their ``time_s`` on the server's monotonic
+    clock less the first sample's); the per-tick time, status and hand force from the
+    control plane's 100 Hz telemetry history (``api.history``), so ``ticks`` counts samples,
+    not packets; ``started_at`` from the first sample. ``notes`` say so, and what the
+    bounded history left out.
 
     Attributes:
         source: the recording's directory name, or ``session N``.
