@@ -17,7 +17,7 @@ from .docs_pages import add_docs_pages
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
 from .sources import SourceError
-from .supervisor import Supervisor
+from .supervisor import Supervisor, worker_state
 from .ui_pages import add_ui_pages
 
 API_PREFIX = "/v1"
@@ -91,13 +91,12 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         workers = []
         for index, hot in enumerate(list(plane.workers)):
             up = hot.is_alive()
-            state = supervisor.states[index] if supervisor is not None else "running"
             workers.append({
                 "index": index, "pid": hot.pid if up else None,
                 "udp": {"host": hot.address[0], "port": hot.address[1]}
                 if hot.address else None,
                 "sessions": len(plane.worker_sessions(index)),
-                "state": state if up else ("down" if state == "running" else state),
+                "state": worker_state(supervisor, hot, index),
                 "restarts": supervisor.worker_restarts(index) if supervisor is not None else 0,
             })
         alive = all(w["state"] == "running" for w in workers)

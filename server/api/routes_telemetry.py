@@ -26,6 +26,7 @@ from .routes_mesh import (
     watch_disconnect,
 )
 from .routes_sessions import SessionPath
+from .supervisor import worker_state
 from .telemetry import TelemetrySample
 
 #: The REST route: the app adds its bearer check, as for every router.
@@ -50,17 +51,11 @@ def _plane(request: Request | WebSocket) -> ControlPlane:
 
 
 def loop_state(request: Request | WebSocket, session: ManagedSession) -> str:
-    """The supervisor's state of the hot loop serving ``session``, as /v1/health reports it
-    ("running", "restarting", "lost"; "down": dead and not yet noticed). Cheap: a list item
-    and a poll of the process, no command to the loop. Without a supervisor on the app
-    (``app.state.supervisor``), the process alone decides."""
-    plane = _plane(request)
-    supervisor = getattr(request.app.state, "supervisor", None)
+    """The state of the hot loop serving ``session``, as /v1/health reports it
+    (``supervisor.worker_state``; ``app.state.supervisor``)."""
     index = session.worker
-    state = supervisor.states[index] if supervisor is not None else "running"
-    if not plane.workers[index].is_alive():
-        return "down" if state == "running" else state
-    return state
+    return worker_state(getattr(request.app.state, "supervisor", None),
+                        _plane(request).workers[index], index)
 
 
 def _sample(request: Request | WebSocket, plane: ControlPlane,

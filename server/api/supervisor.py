@@ -280,3 +280,13 @@ def _describe_exit(code: int | None) -> str:
 
 def _terminate_self() -> None:
     signal.raise_signal(signal.SIGTERM)
+
+
+def worker_state(supervisor: Supervisor | None, worker: HotLoopProcess, index: int) -> str:
+    """Hot-loop worker ``index``'s state as /v1/health reports it: the supervisor's
+    ("running", "restarting", "lost"), or "down" for a dead loop it has not noticed yet.
+    Without a supervisor, the process alone decides. Cheap: no command to the loop."""
+    state = supervisor.states[index] if supervisor is not None else "running"
+    if not worker.is_alive():
+        return "down" if state == "running" else state
+    return state
