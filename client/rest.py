@@ -609,10 +609,10 @@ class BurrRest:
         params: dict[str, Any] = {"format": format}
         if threshold_n is not None:
             params["threshold_n"] = float(threshold_n)
-        path = f"{API_PREFIX}/sessions/{int(session_id)}/report"
+        path = f"/sessions/{int(session_id)}/report"
         if format == "html":
-            return self._send("GET", path, params=params).text
-        return self._json("GET", f"/sessions/{int(session_id)}/report", params=params)
+            return self._send("GET", API_PREFIX + path, params=params).text
+        return self._json("GET", path, params=params)
 
     def download_recording_report(self, name: str, path: str | Path,
                                   threshold_n: float | None = None) -> Path:

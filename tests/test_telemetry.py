@@ -419,7 +419,7 @@ def test_installs_alternate_slots_and_the_header_names_both_in_one_word(tmp_path
     eye = np.eye(3)
     seen = []
     for _ in range(4):
-        slot = block.TelemetrySlot.claim(path)
+        slot = block.TelemetrySlot(path)
         slot.activate(np.zeros(3), eye)
         with open(path, "rb") as f:
             state = int(np.frombuffer(f.read(block.PAGE), np.int64)[block.H_STATE])

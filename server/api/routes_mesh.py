@@ -125,6 +125,21 @@ async def accept(ws: WebSocket) -> None:
     await ws.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in _offered(ws) else None)
 
 
+async def admitted_session_id(ws: WebSocket, session_id: str, token: str | None) -> int | None:
+    """After the query was parsed: the token checked (4401) and the path's session id parsed
+    (4422), for every push WebSocket; the id, or None once the socket is closed."""
+    if not _authorized(ws, token):
+        await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
+                             "the subprotocol bearer.TOKEN, or ?token=TOKEN)")
+        return None
+    # isdecimal on ASCII only: isdigit would take "²", which int() refuses.
+    if not (session_id.isascii() and session_id.isdecimal()) or int(session_id) >= 1 << 32:
+        await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
+                                     f"{session_id!r}"))
+        return None
+    return int(session_id)
+
+
 def _authorized(ws: WebSocket, token: str | None) -> bool:
     """The bearer token from the Authorization header, the ``bearer.TOKEN`` subprotocol or
     ``?token=``."""
@@ -239,17 +254,12 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     except ValueError as exc:
         await ws.close(4422, _reason(str(exc)))
         return
-    if not _authorized(ws, query.token):
-        await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
-                             "the subprotocol bearer.TOKEN, or ?token=TOKEN)")
-        return
-    if not session_id.isdigit() or int(session_id) >= 1 << 32:
-        await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
-                                     f"{session_id!r}"))
+    sid = await admitted_session_id(ws, session_id, query.token)
+    if sid is None:
         return
     plane = _plane(ws)
     try:
-        session = _meshable(plane, int(session_id))
+        session = _meshable(plane, sid)
     except ApiError as exc:
         await ws.close(4000 + exc.status, _reason(exc.detail))
         return

@@ -18,9 +18,9 @@ from ..report import SessionReport, report_from_live
 from .manager import ApiError, ControlPlane, ManagedSession
 from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
 from .routes_mesh import (
-    _authorized,
     _reason,
     accept,
+    admitted_session_id,
     release_socket_slot,
     take_socket_slot,
     watch_disconnect,
@@ -31,7 +31,7 @@ from .telemetry import TelemetrySample
 
 #: The REST route: the app adds its bearer check, as for every router.
 router = APIRouter()
-#: The WebSocket: checks the token itself (header or ``?token=``), as the mesh's does.
+#: The WebSocket: checks the token itself (header, subprotocol or ``?token=``), as the mesh's.
 ws_router = APIRouter()
 
 HZ_MIN = 10
@@ -85,7 +85,7 @@ def telemetry(request: Request, session_id: int = SessionPath) -> dict:
     it grows while nothing streams, or while the hot loop restarts) and ``loop`` (the
     supervisor's state of the session's hot loop: running, restarting, lost, down). Read
     from shared memory, not from the loop. The WebSocket
-    ``/v1/sessions/{id}/telemetry/ws?token=…&hz=30`` pushes the same."""
+    ``/v1/sessions/{id}/telemetry/ws?hz=30`` pushes the same."""
     return _sample(request, _plane(request), session_id).to_dict()
 
 
@@ -140,9 +140,10 @@ def _hz(text: str | None) -> int:
 async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes the session's telemetry (JSON, as ``GET …/telemetry``) ``hz`` times a second
     (10–60, default 30) when it changed, and at least once a second. Query: hz, token (or
-    the Authorization header). Closes with 4422 (bad query), 4401 (token), 4404 / 4409 (no
-    such session / not ready), 4503 (``MAX_TELEMETRY_SOCKETS`` are open, or no live
-    telemetry on this server), 1001 (the session was deleted)."""
+    the Authorization header, or the subprotocol ``bearer.TOKEN``). Closes with 4422 (bad
+    query), 4401 (token), 4404 / 4409 (no such session / not ready), 4503
+    (``MAX_TELEMETRY_SOCKETS`` are open, or no live telemetry on this server), 1001 (the
+    session was deleted)."""
     # Accepted first: a close before the handshake reaches the client as a bare HTTP 403.
     await accept(ws)
     try:
@@ -150,20 +151,13 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     except ValueError as exc:
         await ws.close(4422, _reason(str(exc)))
         return
-    if not _authorized(ws, ws.query_params.get("token")):
-        await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
-                             "the subprotocol bearer.TOKEN, or ?token=TOKEN)")
-        return
-    if not (session_id.isascii() and session_id.isdecimal()) or int(session_id) >= 1 << 32:
-        await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
-                                     f"{session_id!r}"))
+    sid = await admitted_session_id(ws, session_id, ws.query_params.get("token"))
+    if sid is None:
         return
     plane = _plane(ws)
-    sid = int(session_id)
     try:
         session = plane.ready(sid)
-        if not plane.telemetry.available:
-            raise ApiError(503, "no live telemetry on this server: it needs room in /dev/shm")
+        _require_telemetry(plane)
     except ApiError as exc:
         await ws.close(4000 + exc.status, _reason(exc.detail))
         return

@@ -34,6 +34,7 @@ import numpy as np
 
 from .chromium import WEBGL_ARGS, launch, missing
 from .latency import CHUNK, _Client, _Cut, _pin, _stats
+from .procstat import cpu_s
 
 MODES = ("page closed", "page open")
 SESSION_ID = 1
@@ -54,7 +55,6 @@ STATE = ("() => window.burrforceView ? {selected: burrforceView.state.selected, 
          "have: burrforceView.state.copy && burrforceView.state.copy.have, "
          "samples: burrforceView.plots.samples, frames: burrforceView.scene.frames, "
          "mesh: document.getElementById('mesh-status').textContent} : document.title")
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
 def _serve(voxel_mm: float, data_dir: Path) -> int:
@@ -105,14 +105,7 @@ def _exe_name(pid: int) -> str:
 
 def _cpu_s(pids: list[int]) -> dict[int, float]:
     """utime + stime of each live pid, s."""
-    out = {}
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        out[pid] = (int(fields[11]) + int(fields[12])) / CLK_TCK
-    return out
+    return {pid: t for pid in pids if (t := cpu_s(pid)) is not None}
 
 
 GROUPS = ("browser", "driver", "stack", "hot_loop")

@@ -54,6 +54,7 @@ from ...client.udp import SessionRules
 from ...proto.messages import HELLO_STREAM, NEW_STREAM, SEQ_MODULUS, STATUS_CUTTING, Notice
 from ..cli.args import float_in, int_at_least
 from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, HELLO_TRIES, RPM, _Cut
+from .procstat import cpu_s
 from .serve_process import spawn_serve
 from .soak import Rest
 from .timing import machine_line
@@ -152,16 +153,6 @@ def _handshake(s: _Stream) -> None:
     raise RuntimeError(f"session {s.session} never answered a hello")
 
 
-def _cpu_ticks(pid: int) -> int | None:
-    """utime + stime of process ``pid`` (all its threads), clock ticks; None if it is gone
-    (a worker restarted)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return int(fields[11]) + int(fields[12])  # fields 14 and 15 of proc(5)
-
-
 def _percentiles(values: np.ndarray, qs: tuple[float, ...]) -> list[float | None]:
     if len(values) == 0:
         return [None for _ in qs]
@@ -233,7 +224,7 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
                 now = clock()
                 if now >= due:
                     if k == warm:
-                        cpu0 = [_cpu_ticks(p) for p in worker_pids]
+                        cpu0 = [cpu_s(p) for p in worker_pids]
                         gen0, wall0 = time.thread_time_ns(), clock()
                     _send_tick(streams, k, due, late_ns[k])
                     k += 1
@@ -241,7 +232,7 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
                 for key, _ in sel.select((due - now) / 1e9):
                     drain(key.data)
             gen_ns, wall_ns = time.thread_time_ns() - gen0, clock() - wall0
-            cpu1 = [_cpu_ticks(p) for p in worker_pids]
+            cpu1 = [cpu_s(p) for p in worker_pids]
             end = clock() + int(DRAIN_S * 1e9)
             while (now := clock()) < end:
                 for key, _ in sel.select((end - now) / 1e9):
@@ -253,8 +244,7 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
             gc.unfreeze()
     server_pct = None
     if None not in cpu0 and None not in cpu1:
-        server_s = sum(b - a for a, b in zip(cpu0, cpu1, strict=True)) / os.sysconf(
-            "SC_CLK_TCK")
+        server_s = sum(b - a for a, b in zip(cpu0, cpu1, strict=True))
         server_pct = 100.0 * server_s * 1e9 / wall_ns
     return {"warm": warm, "late_ns": late_ns[warm:].ravel(), "wall_s": wall_ns / 1e9,
             "generator_cpu_pct": 100.0 * gen_ns / wall_ns, "server_cpu_pct": server_pct,

@@ -25,6 +25,7 @@ from pathlib import Path
 import httpx
 
 from ...client.udp import BurrClient
+from .procstat import cpu_s
 from .serve_process import spawn_serve
 from .timing import machine_line
 
@@ -64,10 +65,10 @@ def _cpu_s(pid: int) -> float | None:
     """CPU seconds (user + system) used so far by ``pid`` and its descendants still alive;
     None where /proc cannot tell (not Linux). Unlike wall time, not inflated by other work
     on a busy machine."""
+    total = cpu_s(pid)
+    if total is None:
+        return None
     try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        total = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
         for task in os.listdir(f"/proc/{pid}/task"):
             with open(f"/proc/{pid}/task/{task}/children") as f:
                 for child in f.read().split():

@@ -257,8 +257,8 @@ def main(args: argparse.Namespace) -> int:
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device, _pool_line(plane, session))
             if args.demo:
-                _run_demo(say, context["path"], done, session.bone_info, stack.url,
-                          token, session.id)
+                _run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
+                          session.id)
             _report(stack.stats, session.id, done, say, plane.devices)
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
@@ -386,9 +386,7 @@ DEMO_LANES_MM = (3.0, -3.0, 6.0, -6.0)
 
 
 def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None,
-              url: str, token: str, session_id: int) -> None:
-    import httpx
-
+              url: str, plane, session_id: int) -> None:
     say("--demo: running `burrforce client demo` against this server...")
     x_mm, y_mm = demo_start_mm(bone_info)
     code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
@@ -402,12 +400,10 @@ def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | Non
     while not done.wait(DEMO_EVERY_S):
         if lane == len(DEMO_LANES_MM):
             lane = 0
-            try:
-                httpx.post(f"{url}/v1/sessions/{session_id}/reset",
-                           headers={"Authorization": f"Bearer {token}"},
-                           params={"wait": "true"}, timeout=30.0).raise_for_status()
-            except httpx.HTTPError as exc:
-                say(f"--demo: stopped: could not reset the bone ({exc})")
+            # As POST …/reset does: the bone reloaded from its source, uncarved.
+            job = plane.reset(session_id)
+            if not plane.wait(job, 60.0) or job.state != "done":
+                say(f"--demo: stopped: could not reset the bone ({job.error or 'timed out'})")
                 return
             code = _demo_groove(conn_path, done, x_mm, y_mm)
         else:

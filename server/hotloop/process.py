@@ -106,7 +106,7 @@ def build_session(spec: SessionSpec) -> Session:
     bone = load_session_bone(spec)
     materials = spec.materials if spec.materials is not None else bone.materials
     engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft)
-    telemetry = TelemetrySlot.claim(spec.telemetry) if spec.telemetry is not None else None
+    telemetry = TelemetrySlot(spec.telemetry) if spec.telemetry is not None else None
     session = Session(spec.session_id, engine, spec.config, spec.key,
                       next_stream=spec.next_stream, telemetry=telemetry)
     session.publish_bone(spec.publish)

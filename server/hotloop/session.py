@@ -91,7 +91,6 @@ from .wire import (
     P_SEQ,
     P_SPINDLE_ON,
     P_T_CLIENT,
-    R_T_RECV,
     REPLY_FLOATS,
     REPLY_INTS,
     new_buffers,
@@ -478,9 +477,6 @@ class Session:
         tf = self.transform
         engine = self.engine
         k = self._k
-        # The reply built here is not kept in M_REPLY/K_REPLY: mark what is there (an earlier
-        # raw or error reply) as not this packet's, for the telemetry reader.
-        self._m[M_REPLY + R_T_RECV] = 0
         t_client_us = int(pose_i[P_T_CLIENT])
         spindle_on = bool(pose_i[P_SPINDLE_ON])
         rpm = float(k[W_RPM])

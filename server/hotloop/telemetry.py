@@ -48,14 +48,16 @@ H_STATE = 1
 N_HEADER = 8
 
 
-def installs_and_slot(state: int) -> tuple[int, int]:
-    """``(installs, active slot)`` from the header's ``H_STATE`` word."""
-    return state >> 1, state & 1
 SLOTS = 2
 #: A slot's geometry (float64): the grid frame in the server frame.
 G_ORIGIN = 0  #: (3) mm
 G_DIRECTION = 3  #: (9) row-major, the grid's axes as columns (``BoneGrid.direction``)
 SLOT_GEOMETRY = 12
+
+
+def installs_and_slot(state: int) -> tuple[int, int]:
+    """``(installs, active slot)`` from the header's ``H_STATE`` word."""
+    return state >> 1, state & 1
 
 
 def _align(n: int) -> int:
@@ -102,7 +104,7 @@ def header(buf: mmap.mmap | bytes | bytearray | memoryview) -> np.ndarray:
 class TelemetrySlot:
     """The hot loop's side: a session's state arrays in a telemetry file.
 
-    :meth:`claim` takes the slot the installed session does not write; the session is built
+    Built on a file, it takes the slot the installed session does not write; the session is built
     on its arrays (``Session(..., telemetry=slot)``); :meth:`activate` makes it the one the
     control plane reads, once the session is installed (under the loop's lock).
     """
@@ -118,10 +120,6 @@ class TelemetrySlot:
         self.geometry, self.k, self.m, self.tick_ns = slot_arrays(self._map, self.slot)
         for a in (self.geometry, self.k, self.m, self.tick_ns):
             a[:] = 0
-
-    @classmethod
-    def claim(cls, path: str | os.PathLike) -> TelemetrySlot:
-        return cls(path)
 
     def activate(self, origin_mm: np.ndarray, direction: np.ndarray) -> None:
         """Make this slot the one read: the grid's ``origin_mm`` (3,) and ``direction`` (3, 3)

@@ -64,14 +64,8 @@ def report_from_live(
             notes.append(f"the hot loop restarted or the bone was reloaded at {at:.1f} s "
                          f"({changes.size} time(s)): the removed volumes and forbidden "
                          "contacts count from the last of these")
-    contacts = []
-    early = 0
-    for e in events:
-        x, y, z = (float(v) for v in e["position_mm"])
-        time_s = float(e["time_s"]) - t0
-        early += time_s < 0.0
-        contacts.append(ForbiddenContact(time_s, int(e["label"]), str(e["material"]),
-                                         (x, y, z)))
+    contacts = [ForbiddenContact.from_event(float(e["time_s"]) - t0, e) for e in events]
+    early = sum(c.time_s < 0.0 for c in contacts)
     if early:
         notes.append(f"{early} forbidden contact(s) precede the history (negative times)")
     started = None

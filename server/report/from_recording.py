@@ -33,8 +33,7 @@ def report_from_recording(
     rows = rec.rows
     t0 = int(rows["t_recv_ns"][0]) if len(rows) else 0
     t_s = (rows["t_recv_ns"] - t0) * 1e-9
-    contacts = [ForbiddenContact(float(e["t_s"]), int(e["label"]), str(e["material"]),
-                                 _point(e["position_mm"])) for e in replayed.forbidden_events]
+    contacts = [ForbiddenContact.from_event(e["t_s"], e) for e in replayed.forbidden_events]
     notes = [*rec.problems, *replayed.notes]
     if rec.stopped_reason:
         notes.append(f"recording stopped early: {rec.stopped_reason}")
@@ -58,8 +57,3 @@ def report_from_recording(
         complete=rec.complete,
         notes=notes,
     )
-
-
-def _point(p) -> tuple[float, float, float]:
-    x, y, z = (float(v) for v in p)
-    return (x, y, z)

@@ -35,6 +35,13 @@ class ForbiddenContact:
     material: str
     position_mm: tuple[float, float, float]
 
+    @classmethod
+    def from_event(cls, time_s: float, event: Mapping[str, Any]) -> ForbiddenContact:
+        """From an engine's forbidden-contact event (``label``, ``material``, ``position_mm``;
+        a replay's or ``/state``'s), at ``time_s`` on the report's clock."""
+        x, y, z = (float(v) for v in event["position_mm"])
+        return cls(float(time_s), int(event["label"]), str(event["material"]), (x, y, z))
+
     def to_dict(self) -> dict[str, Any]:
         return {"time_s": _num(self.time_s), "label": self.label, "material": self.material,
                 "position_mm": [_num(x) for x in self.position_mm]}

@@ -65,26 +65,26 @@ export async function call(method, path, body) {
   return parsed;
 }
 
-/** A binary GET: resolves to an ArrayBuffer, rejects with ApiError. */
-export async function fetchBinary(path) {
+/** A GET of a file with the token: the response, or ApiError with the server's detail. */
+async function getFile(path) {
   const response = await fetch(apiUrl(path), { headers: { Authorization: `Bearer ${getToken()}` } });
   if (!response.ok) {
     let body = null;
     try { body = await response.json(); } catch { /* not JSON */ }
     throw new ApiError(response.status, detailText(body, response.status));
   }
-  return response.arrayBuffer();
+  return response;
+}
+
+/** A binary GET: resolves to an ArrayBuffer, rejects with ApiError. */
+export async function fetchBinary(path) {
+  return (await getFile(path)).arrayBuffer();
 }
 
 /** Fetches a file (an export, a report) with the token and hands it to the browser as a
  * download or a new tab: a plain link cannot carry the Authorization header. */
 export async function download(path, filename, { open = false } = {}) {
-  const response = await fetch(apiUrl(path), { headers: { Authorization: `Bearer ${getToken()}` } });
-  if (!response.ok) {
-    let body = null;
-    try { body = await response.json(); } catch { /* not JSON */ }
-    throw new ApiError(response.status, detailText(body, response.status));
-  }
+  const response = await getFile(path);
   const blob = await response.blob();
   const url = URL.createObjectURL(blob);
   const a = document.createElement("a");

@@ -15,9 +15,7 @@ const MESH_INTERVAL_MS = 100;
 const MESH_INTERVAL_MS_SOFTWARE = 500;
 
 const state = {
-  sessions: [],
   selected: null,       // session id
-  session: null,        // its REST view
   telemetryWs: null,
   meshWs: null,
   copy: null,
@@ -67,7 +65,7 @@ async function start() {
   $("main").hidden = false;
   if (!plots) plots = new LivePlots($("plots"));
   if (!scene) scene = new BoneScene($("view"));
-  if (!controls) controls = new Controls({ onError: showError, onChanged: refreshSelected, getSelected: () => state.selected });
+  if (!controls) controls = new Controls({ onError: showError, onChanged: refreshSelected });
   window.burrforceView = { scene, plots, state };
   refreshList();
 }
@@ -77,7 +75,6 @@ async function refreshList() {
   try {
     const [health, sessions] = await Promise.all([call("GET", "/health"), call("GET", "/sessions")]);
     renderHealth(health);
-    state.sessions = sessions;
     const rows = await Promise.all(sessions.map(sessionRow));
     renderSessions(rows);
     if (state.selected === null || !sessions.some((s) => s.id === state.selected)) {
@@ -102,7 +99,7 @@ function renderHealth(h) {
 
 async function sessionRow(s) {
   const row = {
-    id: s.id, state: s.state, output: s.output, source: s.source, recording: s.recording,
+    id: s.id, state: s.state, output: s.output, source: s.source,
     device: [s.device, s.device_attached ? "attached" : null].filter(Boolean).join(", ") || "—",
   };
   if (s.state !== "ready") return row;
@@ -118,10 +115,7 @@ async function sessionRow(s) {
     if (prev && now > prev.at) row.rate = Math.max(0, (st.value.accepted - prev.accepted) / ((now - prev.at) / 1000));
     state.rates.set(s.id, { accepted: st.value.accepted, at: now });
   }
-  if (tel.status === "fulfilled") {
-    row.status = tel.value.status_names;
-    row.age = tel.value.age_s;
-  }
+  if (tel.status === "fulfilled") row.status = tel.value.status_names;
   return row;
 }
 
@@ -168,7 +162,6 @@ function stopSession() {
   state.meshUpdates = 0;
   state.forbiddenKey = null;
   state.selected = null;
-  state.session = null;
   if (scene) { scene.clearBone(); scene.hideTool(); scene.setForbidden(null); }
   if (plots) plots.clear();
 }
@@ -196,7 +189,6 @@ async function refreshSelected(reframe = false) {
       call("GET", `/sessions/${id}`), call("GET", `/sessions/${id}/parameters`),
       call("GET", `/sessions/${id}/materials`)]);
     if (state.selected !== id) return;
-    state.session = view;
     if (view.bone) {
       scene.setBoneBox(view.bone, reframe);
       applySection();  // across the new box

@@ -23,10 +23,9 @@ function el(tag, attrs = {}, ...children) {
 }
 
 export class Controls {
-  constructor({ onError, onChanged, getSelected }) {
+  constructor({ onError, onChanged }) {
     this.onError = onError;
     this.onChanged = onChanged;
-    this.getSelected = getSelected;
     this.root = $("controls");
   }
 
