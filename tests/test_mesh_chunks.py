@@ -394,7 +394,9 @@ def test_websocket_refuses_a_wrong_token_and_session(live):
             (server.token, 999, {}, 4404, "no session 999"),
             (server.token, s["id"], {"chunk_bricks": 9}, 4422, "chunk_bricks must be in 1..8"),
             (server.token, s["id"], {"winding": "left"}, 4422, "winding must be one of"),
-            (server.token, s["id"], {"interval_ms": "soon"}, 4422, "must be an integer")):
+            (server.token, s["id"], {"interval_ms": "soon"}, 4422, "must be an integer"),
+            # A digit int() refuses (it was a crash of the handler, not a 4422).
+            (server.token, "%C2%B2", {}, 4422, "session id must be an integer")):
         with pytest.raises(ConnectionClosed) as err:
             next(watch(server.url, token, session, **query))
         assert err.value.rcvd.code == code and says in err.value.rcvd.reason
