@@ -242,8 +242,9 @@ def test_cli_bad_input_is_exit_2_without_a_traceback(tmp_path, capsys):
         assert main(["report", str(bad)]) == 2
         err = capsys.readouterr().err
         assert "burrforce report: error:" in err and "Traceback" not in err
-    with pytest.raises(SystemExit):
-        main(["report", str(tmp_path), "--threshold-n", "0"])
+    for bad in ("0", "1e308"):
+        with pytest.raises(SystemExit):
+            main(["report", str(tmp_path), "--threshold-n", bad])
 
 
 # -- REST -------------------------------------------------------------------------------------
@@ -270,7 +271,7 @@ def test_rest_report_json_and_html(stack, report):
         assert "Time above 0.5 N" in r.text
         assert api.get("/recordings/trainee/report").status_code == 401
         assert api.get("/recordings/nobody/report", headers=auth).status_code == 404
-        for bad in ("0", "-1", "nan", "inf", "lots"):
+        for bad in ("0", "-1", "nan", "inf", "lots", "1.7976931348623157e+308"):
             r = api.get("/recordings/trainee/report", params={"threshold_n": bad},
                         headers=auth)
             assert r.status_code == 422, (bad, r.text)

@@ -6,13 +6,13 @@ from __future__ import annotations
 from fastapi import Query
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 
-from ..report import DEFAULT_THRESHOLD_N, SessionReport, render_html
+from ..report import DEFAULT_THRESHOLD_N, MAX_THRESHOLD_N, SessionReport, render_html
 
 #: The report page has no script and loads nothing: it may only style itself and show
 #: data: images.
 REPORT_CSP = "default-src 'none'; style-src 'unsafe-inline'; img-src data:"
 ReportFormat = Query("json", description="json, or html: a page for an instructor")
-ReportThreshold = Query(DEFAULT_THRESHOLD_N, gt=0.0, allow_inf_nan=False,
+ReportThreshold = Query(DEFAULT_THRESHOLD_N, gt=0.0, le=MAX_THRESHOLD_N, allow_inf_nan=False,
                         description="the hand-force threshold, N: the report counts the time "
                                     "above it")
 REPORT_RESPONSES = {200: {"description": "the session report: JSON (``SessionReport.to_dict``) "

@@ -10,7 +10,16 @@ from pathlib import Path
 from .args import float_at_least
 from .replay import _check_writable, _Progress
 
-_threshold = float_at_least(0.0, inclusive=False)
+_positive = float_at_least(0.0, inclusive=False)
+
+
+def _threshold(text: str) -> float:
+    from ..report import MAX_THRESHOLD_N
+
+    value = _positive(text)
+    if value > MAX_THRESHOLD_N:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_THRESHOLD_N:g} N, got {text}")
+    return value
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

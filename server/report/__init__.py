@@ -11,12 +11,19 @@
 from .from_live import report_from_live
 from .from_recording import report_from_recording
 from .html import render_html
-from .model import DEFAULT_THRESHOLD_N, ForbiddenContact, SessionReport, check_threshold
+from .model import (
+    DEFAULT_THRESHOLD_N,
+    MAX_THRESHOLD_N,
+    ForbiddenContact,
+    SessionReport,
+    check_threshold,
+)
 from .series import MAX_SERIES_POINTS, downsample_min_max
 
 __all__ = [
     "DEFAULT_THRESHOLD_N",
     "MAX_SERIES_POINTS",
+    "MAX_THRESHOLD_N",
     "ForbiddenContact",
     "SessionReport",
     "check_threshold",

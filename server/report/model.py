@@ -18,6 +18,9 @@ from .series import MAX_SERIES_POINTS, downsample_min_max, runs, tick_durations_
 #: the smallest device peak, the Touch's 3.3 N (``haptics/profiles.py``), where the coupled
 #: output clamps, so the time still shows on every device.
 DEFAULT_THRESHOLD_N = 2.0
+#: The largest threshold taken, N: far above any hand force (devices render ~10 N), and the
+#: report's plot scales its axis to it (1.8e308 N overflowed the axis ticks: a 500).
+MAX_THRESHOLD_N = 1e4
 #: Status bits of a tick in contact: the burr or its shaft in bone.
 CONTACT_STATUS = STATUS_CUTTING | STATUS_CONTACT | STATUS_SHAFT_CONTACT
 SOURCE_KINDS = ("recording", "session")
@@ -232,11 +235,11 @@ class SessionReport:
 
 
 def check_threshold(threshold_N: float) -> float:
-    """``threshold_N`` if it is a finite number > 0; else ValueError."""
+    """``threshold_N`` if it is a number in (0, MAX_THRESHOLD_N] N; else ValueError."""
     if isinstance(threshold_N, bool) or not isinstance(threshold_N, (int, float)) \
-            or not math.isfinite(threshold_N) or threshold_N <= 0.0:
-        raise ValueError(f"the force threshold must be a finite number > 0 N, got "
-                         f"{threshold_N!r}")
+            or not 0.0 < threshold_N <= MAX_THRESHOLD_N:  # also refuses NaN
+        raise ValueError(f"the force threshold must be a number in (0, {MAX_THRESHOLD_N:g}] "
+                         f"N, got {threshold_N!r}")
     return float(threshold_N)
 
 
