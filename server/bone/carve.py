@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from ..hot_kernel import hot_kernel
 from .bricks import BRICK, BRICK_SHIFT
 from .voxels import cache_origin, cached_coverage, sphere_reach, voxel_span
 
@@ -17,7 +16,7 @@ TOUCH_NEAR_BONE = 3  # 1 if any brick holding bone lies within the burr's reach
 N_TOUCH = 4
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
                  brick_forbidden, spacing, centre, previous, radius, carve, version_next,
                  removed, touch, touched, cache, tick):
@@ -163,7 +162,7 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     return any_removed
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _axis_gap(c, lo, hi):
     """Distance from c to the interval [lo, hi] along one axis."""
     if c < lo:

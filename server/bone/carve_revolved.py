@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
 from ..model.shapes import Burr
 from .bricks import BRICK, BRICK_SHIFT
@@ -47,7 +47,7 @@ def bounding_radius_mm(burr: Burr) -> float:
     return float(math.hypot(rho_max, max(abs(z_tip), abs(z_top))))
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def fill_geometry(geo, axis, bounds, spacing):
     """This tick's tool basis and the shape's bounds into ``geo`` (N_GEO,)."""
     e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = tool_basis(axis[0], axis[1], axis[2])
@@ -86,7 +86,7 @@ def profile_table(segments: np.ndarray) -> np.ndarray:
     return table
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def profile_distance(table, rho, z):
     """Signed distance from (ρ, z) to the solid (negative inside), mm, and its unit gradient
     (g_ρ, g_z); ``table`` as ``profile_table``. The nearest profile point decides; its side
@@ -155,7 +155,7 @@ def profile_distance(table, rho, z):
     return sign * best, gr, gz
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz):
     """Fraction of a voxel inside the burr, quantized to 0–255. (dx, dy, dz): voxel centre
     minus the reference centre, mm, grid frame. Within a voxel the solid is taken as its
@@ -195,7 +195,7 @@ def revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz):
     return int(frac * 255.0 + 0.5)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, profile, geo, hx,
                              hy, hz):
     """``revolved_coverage`` of voxel (i, j, k), computed at most once per tick (the cache's
@@ -213,7 +213,7 @@ def cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, profi
     return revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def axis_gap(px, py, pz, cx, cy, cz, geo):
     """Distance from p to the burr's axis segment (tip to top), mm."""
     ax = geo[6]
@@ -227,7 +227,7 @@ def axis_gap(px, py, pz, cx, cy, cz, geo):
     return math.sqrt(qx * qx + qy * qy + qz * qz)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def _row_span(dx, dy, cz, hz, geo, r_out, k_lo, k_hi):
     """The voxels k of the row (dx, dy from the reference centre; z = k·hz) that can be
     covered: inside the cylinder ρ < ``r_out`` about the axis and between the tip's and the
@@ -277,7 +277,7 @@ def _row_span(dx, dy, cz, hz, geo, r_out, k_lo, k_hi):
     return max(k_lo, first), min(k_hi, last)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
                    brick_forbidden, spacing, centre, profile, geo, carve, version_next,
                    removed, touch, touched, cache, tick):

@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT, accumulate_forces, finish, tool_basis
 from .voxels import cache_origin, sample_bone, sphere_reach
 
@@ -40,16 +39,17 @@ PENDING = -1.0
 UNNEEDED = -2.0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-               sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
+               sin_sub_p, corner_tables, radius, centre, axis, v_feed, omega,
                cutting, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
                vert, acc, out, cache, tick, cand):
     """Cutting force of the burr against the voxel bone, in the grid frame.
 
     Args:
-        cos_t … sin_sub_p: the burr tables (``BurrGrid``); cos_tv, sin_tv: (n_theta + 1,) and
-            cos_pv, sin_pv: (n_phi,) at the element corners.
+        cos_t … sin_sub_p: the burr tables (``BurrGrid``).  corner_tables: the tuple
+            (cos_tv, sin_tv, cos_pv, sin_pv), (n_theta + 1,) twice and (n_phi,) twice, at the
+            element corners (one argument: see ``hot_kernel``'s 30-argument limit).
         radius: R, mm.  centre, axis, v_feed: (3,) grid frame (mm, any-length axis, mm/s).
         omega: signed spindle speed along the axis, rad/s.  cutting: fast enough to cut.
         density, swept, labels: uint8 voxels; us_tab, usk_tab: (256,) Us and Us·K per label.
@@ -59,6 +59,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
         cache, tick: the tick's coverage cache (``voxels.cached_coverage``).
         cand: the burr's path near it, with its header (``history.history_candidates``).
     """
+    cos_tv, sin_tv, cos_pv, sin_pv = corner_tables
     for n in range(N_ACC):
         acc[n] = 0.0
     for n in range(N_OUT):
@@ -69,7 +70,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     cx = centre[0]
     cy = centre[1]
     cz = centre[2]
-    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = tool_basis(axis[0], axis[1], axis[2])
+    basis = tool_basis(axis[0], axis[1], axis[2])
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = basis
     v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
     v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
     v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
@@ -110,10 +112,9 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                 continue
             if vert[j, k, 0] == PENDING:
                 _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
-                               swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius,
-                               e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2,
-                               r_out2, cache, o0, o1, o2, tick, cand,
-                               half_t, half_p)
+                               swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
+                               hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
+                               half_p)
     # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled.
     # Pass 1c: the unneeded ones read as no bone.
     fill_uniform_fine(vert, n_theta, n_phi)
@@ -122,9 +123,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             if vert[j, k, 0] != PENDING:
                 continue
             _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
-                           swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz, radius, e1x,
-                           e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, hx, hy, hz, r_in2, r_out2,
-                           cache, o0, o1, o2, tick, cand, half_t, half_p)
+                           swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis, hx,
+                           hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t, half_p)
     clear_unneeded(vert, n_theta + 1, n_phi)
     # Outward surface normal: from the density gradient where the bone's surface crosses the
     # burr; failing that, against the mean normal of the elements in bone.
@@ -240,12 +240,19 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
 
 
-@njit(cache=True, nogil=True)
+@hot_inline
 def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
-                   brick_bone, cx, cy, cz, radius, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z,
-                   hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand,
-                   half_t, half_p):
-    """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``."""
+                   brick_bone, centre, radius, basis, hx, hy, hz, r_in2, r_out2, cache, o0, o1,
+                   o2, tick, cand, half_t, half_p):
+    """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``.
+
+    ``centre``: (3,) burr centre; ``basis``: the tool frame (e1, e2, e3) as 9 floats
+    (``tool_basis``), packed to keep to 30 arguments (``hot_kernel``).
+    """
+    cx = centre[0]
+    cy = centre[1]
+    cz = centre[2]
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = basis
     n1 = st * cpv
     n2 = st * spv
     px = cx + radius * (n1 * e1x + n2 * e2x + ct * e3x)
@@ -264,7 +271,7 @@ def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab,
     vert[j, k, 2] = usk_f
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
     """Pass 1a of the corner sampling, shared by every burr shape: mark each corner
     ``vert[j, k, 0]`` PENDING if an element that will be evaluated needs it, else UNNEEDED.
@@ -297,7 +304,7 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
             vert[j, k, 0] = PENDING if needed else UNNEEDED
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def fill_uniform_fine(vert, n_rows, n_phi):
     """Pass 1b of the corner sampling, before any fine corner is sampled: a fine corner still
     PENDING whose coarse cell holds uniform bone (all of its corners sampled and identical)
@@ -338,7 +345,7 @@ def fill_uniform_fine(vert, n_rows, n_phi):
                 vert[j, k, 2] = vert[jm, km, 2]
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def clear_unneeded(vert, n_corner_rows, n_phi):
     """Pass 1c: the corners no evaluated element needs read as no bone."""
     for j in range(n_corner_rows):

@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from ..hot_kernel import hot_kernel
 from ..model.kernels import N_ACC, N_OUT, finish
 from ..model.kernels_revolved import accumulate_forces_revolved
 from ..model.revolved import RevolvedGrid
@@ -59,7 +59,7 @@ def revolved_corners(burr: Burr, grid: RevolvedGrid) -> tuple[np.ndarray, np.nda
             np.ascontiguousarray(np.sin(phi)))
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, density,
                            profile, geo, cache, o0, o1, o2, tick):
     """``voxels._availability`` with this burr's own coverage (``carve_revolved``): the share
@@ -105,7 +105,7 @@ def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz
     return a_num / a_den
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx,
                          hy, hz, cx, cy, cz, profile, geo, cache, o0, o1, o2, tick):
     """``voxels.sample_bone`` for a burr of revolution, without the path: (fraction,
@@ -146,7 +146,7 @@ def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _sample_corner(vert, j, k, rho, z, cpv, spv, density, swept, labels, us_tab, usk_tab,
                    brick_bone, cx, cy, cz, geo, hx, hy, hz, profile, cache, o0, o1, o2, tick):
     """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``."""
@@ -163,10 +163,10 @@ def _sample_corner(vert, j, k, rho, z, cpv, spv, density, swept, labels, us_tab,
     vert[j, k, 2] = usk_f
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin_sub_p,
-                        corners, cos_pv, sin_pv, profile, geo, centre, v_feed, omega,
-                        cutting, kn, kg, material_k, density, swept, labels, us_tab, usk_tab,
+                        corner_tables, profile, geo, centre, v_feed, omega,
+                        cutting, ratios, density, swept, labels, us_tab, usk_tab,
                         brick_bone, spacing, vert, acc, out, cache, tick):
     """Cutting force of a burr of revolution against the voxel bone, in the grid frame.
 
@@ -174,21 +174,24 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
         elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin_sub_p: the burr's
             ``RevolvedGrid`` tables (shapes there).
         profile: (n_seg, 9) the exact profile (``carve_revolved.profile_table``).
-        corners: (2, n_s + 1) ρ, z of the element boundaries, mm; cos_pv, sin_pv: (n_phi,)
-            sector edges (``revolved_corners``).
+        corner_tables: the tuple (corners, cos_pv, sin_pv): corners (2, n_s + 1) ρ, z of
+            the element boundaries, mm; cos_pv, sin_pv (n_phi,) sector edges
+            (``revolved_corners``). One argument: see ``hot_kernel``'s 30-argument limit.
         geo: (N_GEO,) this tick's tool basis and the shape's bounds
             (``carve_revolved.fill_geometry``).
         centre, v_feed: (3,) reference centre (mm) and feed (mm/s), grid frame.
         omega: signed spindle speed along the axis, rad/s.  cutting: fast enough to cut.
-        kn, kg: the cutter's normal and edge ratios (``shapes.Cutter.force_ratios``);
-            material_k: use each material's K (``usk_tab``) as the normal ratio instead of
-            ``kn`` (an abrasive burr).
+        ratios: the tuple (kn, kg, material_k): the cutter's normal and edge ratios
+            (``shapes.Cutter.force_ratios``), and whether each material's K (``usk_tab``) is
+            the normal ratio instead of ``kn`` (an abrasive burr).
         density, swept, labels: uint8 voxels; us_tab, usk_tab: (256,) Us and Us·K per label.
         brick_bone: int32 brick counts.  spacing: (3,) voxel size, mm.
         vert: float64 scratch (n_s + 1, n_phi, 3) (corner samples).
         acc: (N_ACC,) scratch; out: (N_OUT,) result (``model.kernels.OUT_*``, grid frame).
         cache, tick: the tick's coverage cache (``carve_revolved.cached_revolved_coverage``).
     """
+    corners, cos_pv, sin_pv = corner_tables
+    kn, kg, material_k = ratios
     for n in range(N_ACC):
         acc[n] = 0.0
     for n in range(N_OUT):

@@ -25,8 +25,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
 
 # Columns of a segment: start a (3), direction u = b − a (3), radius r, |u|².
@@ -77,7 +77,7 @@ HISTORY_EXACT = 1  # the path knows every cut within reach: it replaces the voxe
 HISTORY_PARTIAL = 2  # some cuts within reach are unknown: voxels' × path's
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     """Share of a surface patch at p (grid frame, mm) outside every candidate capsule in
     ``cand`` (``history_candidates``), in [0, 1]. The patch is the rectangle spanned by its
@@ -128,7 +128,7 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     return box_fraction(best + ON_SURFACE_MM, half_a, half_b)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def _segment_gap(cx, cy, cz, ax, ay, az, ux, uy, uz, l2):
     """Distance from point c to the segment a → a + u, mm."""
     wx = cx - ax
@@ -143,7 +143,7 @@ def _segment_gap(cx, cy, cz, ax, ay, az, ux, uy, uz, l2):
     return math.sqrt(qx * qx + qy * qy + qz * qz)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     """Append segment a → b (radius r) to ``cand`` (as row n + 1) if it comes within
     ``reach`` + r of c. Returns the new count, or −1 when ``cand`` is full."""
@@ -167,7 +167,7 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     return n + 1
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def history_candidates(ring, meta, cx, cy, cz, reach, cand):
     """Collect the capsules that can hold a point within ``reach`` mm of c (the burr's centre
     and radius plus a stencil's reach) into ``cand``, float64 (MAX_CANDIDATES + 1, SEG_COLS),
@@ -217,7 +217,7 @@ def history_candidates(ring, meta, cx, cy, cz, reach, cand):
     cand[0, CAND_MODE] = HISTORY_PARTIAL if unknown or overflow else HISTORY_EXACT
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _commit(ring, meta, ax, ay, az, bx, by, bz, r):
     """Store segment a → b in the ring; the segment it overwrites joins the unknown box."""
     head = int(meta[M_HEAD])
@@ -244,7 +244,7 @@ def _commit(ring, meta, ax, ay, az, bx, by, bz, r):
     meta[M_COUNT] = min(count + 1, size)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _close_run(ring, meta):
     """Store the open run (its segment and tail) and close it."""
     if meta[M_OPEN] == 0.0:
@@ -260,7 +260,7 @@ def _close_run(ring, meta):
     meta[M_OPEN] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def history_record(ring, meta, cx, cy, cz, radius, carved, voxel_mm):
     """After a tick: extend the path with the burr's centre c (grid frame, mm) if the tick
     carved, else note the break. ``voxel_mm``: the smallest voxel side."""

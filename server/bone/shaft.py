@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from ..hot_kernel import hot_kernel
 from .bricks import BRICK, BRICK_SHIFT
 from .voxels import plane_fraction, voxel_span
 
@@ -23,7 +22,7 @@ SHAFT_DEPTH = 7  # deepest penetration of a voxel centre into the shaft, mm
 N_SHAFT = 8
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def shaft_contact(density, swept, brick_bone, spacing, centre, axis, burr_radius, shaft_radius,
                   length, stiffness, out):
     """Penalty contact of the shaft with bone (one call per tick).

@@ -7,8 +7,7 @@ sources (``compile_cache``), so an edit to carve.py or voxels.py never runs a st
 
 from __future__ import annotations
 
-from numba import njit
-
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE, carve_sphere
 from .force import cut_voxels
@@ -16,7 +15,7 @@ from .history import history_candidates, history_record
 from .shaft import N_SHAFT, shaft_contact
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
               sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
               cutting, carve, density, swept, labels, us_tab, usk_tab, forbidden, brick_bone,
@@ -52,7 +51,7 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
         history_candidates(path_ring, path_meta, centre[0], centre[1], centre[2],
                            radius + 2.0 * h_max, path_cand)
         cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-                   sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed,
+                   sin_sub_p, (cos_tv, sin_tv, cos_pv, sin_pv), radius, centre, axis, v_feed,
                    omega, cutting, density, swept, labels, us_tab, usk_tab,
                    brick_bone, spacing, vert, acc, out, cache, tick, path_cand)
     else:
@@ -70,14 +69,14 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     return removed_any
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def clear(values, n_values):
     """Zero the first ``n_values`` of a float64 vector (outputs nothing wrote this tick)."""
     for n in range(n_values):
         values[n] = 0.0
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def add_to(total, part):
     """total += part, float64 (n,) each (this tick's removal into the running total)."""
     for n in range(part.shape[0]):

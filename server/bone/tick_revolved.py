@@ -6,8 +6,7 @@ sphere; numba keys this cache on this file only (see tick.py on ``compile_cache`
 
 from __future__ import annotations
 
-from numba import njit
-
+from ..hot_kernel import hot_kernel
 from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE
 from .carve_revolved import GEO_Z_TOP, carve_revolved, fill_geometry
@@ -16,7 +15,7 @@ from .shaft import N_SHAFT, SHAFT_TORQUE, shaft_contact
 from .tick import add_to, clear
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin_sub_p,
                        corners, cos_pv, sin_pv, profile, bounds, geo, centre, axis, v_feed,
                        omega, cutting, carve, kn, kg, material_k, density, swept, labels,
@@ -48,8 +47,8 @@ def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, si
         add_to(removed_total, removed)
     if touch[TOUCH_NEAR_BONE] != 0.0:
         cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin_sub_p,
-                            corners, cos_pv, sin_pv, profile, geo, centre, v_feed, omega,
-                            cutting, kn, kg, material_k, density, swept, labels, us_tab,
+                            (corners, cos_pv, sin_pv), profile, geo, centre, v_feed, omega,
+                            cutting, (kn, kg, material_k), density, swept, labels, us_tab,
                             usk_tab, brick_bone, spacing, vert, acc, out, cache, tick)
     else:
         clear(out, N_OUT)

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
 from .bricks import BRICK_MASK, BRICK_SHIFT
 from .history import CAND_COUNT, CAND_MODE, HISTORY_EXACT, history_share
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def sphere_reach(radius, hx, hy, hz):
     """Squared radii (inner, outer) between which a voxel is partly covered by a sphere.
 
@@ -27,7 +26,7 @@ def sphere_reach(radius, hx, hy, hz):
     return r_in * r_in, r_out * r_out
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def plane_fraction(depth, a, b, c):
     """Share of a voxel whose centre lies ``depth`` mm inside a plane, given the voxel's three
     half-extents projected on the plane's normal: the trapezoid whose half-ranges are the
@@ -37,13 +36,13 @@ def plane_fraction(depth, a, b, c):
     return box_fraction(depth, big, a + b + c - big)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def voxel_span(lo_mm, hi_mm, h, n):
     """First and last voxel index (of n, spacing h) whose centre lies in [lo_mm, hi_mm]."""
     return max(0, math.ceil(lo_mm / h)), min(n - 1, math.floor(hi_mm / h))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
     """Fraction of a voxel inside a sphere, quantized to 0–255.
 
@@ -71,7 +70,7 @@ def coverage_cache_shape(radius, spacing):
     return tuple(2 * (math.ceil((radius + half_diag) / h) + 2) + 2 for h in spacing)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cache_origin(cache, cx, cy, cz, hx, hy, hz):
     """Voxel index of the cache's (0, 0, 0) for a burr centred at (cx, cy, cz)."""
     return (math.floor(cx / hx) - (cache.shape[0] - 2) // 2,
@@ -79,7 +78,7 @@ def cache_origin(cache, cx, cy, cz, hx, hy, hz):
             math.floor(cz / hz) - (cache.shape[2] - 2) // 2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy, hz, r_in2,
                     r_out2):
     """``sphere_coverage`` of voxel (i, j, k), computed at most once per tick: carving fills
@@ -97,7 +96,7 @@ def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy
     return sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
                 cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand, s1x, s1y,
                 s1z, s2x, s2y, s2z):
@@ -158,7 +157,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
     """Trilinear original density (×255), its Us and Us·K weighted sums and its gradient (per
     voxel step) for a stencil inside the grid, unrolled: the hot path of every sample."""
@@ -224,7 +223,7 @@ def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty
     return bone, us, usk, gx, gy, gz, swept_any
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
     """``_gather_interior`` for a stencil that leaves the grid (outside voxels are empty)."""
     nx, ny, nz = density.shape
@@ -270,7 +269,7 @@ def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz
     return bone, us, usk, gx, gy, gz, swept_any
 
 
-@njit(cache=True, nogil=True, inline="always")
+@hot_inline
 def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2,
                   density, cache, o0, o1, o2, tick):
     """Share of the stencil's bone outside the burr that no other burr position has swept

@@ -54,9 +54,8 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
 from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE
+from ..hot_kernel import hot_kernel
 from ..model.kernels import (
     OUT_CONTACT_AREA,
     OUT_FORCE,
@@ -117,7 +116,7 @@ EMBEDDED_SHARE = 0.98
 EMBEDDED_FROM = 0.9
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def track_period(state, params, dt_s):
     """Smooth the packet interval and set the coupling's stiffness and damping from it."""
     period = state[S_PERIOD]
@@ -132,7 +131,7 @@ def track_period(state, params, dt_s):
     state[S_B] = 0.5 * b_max
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def place_proxy(state, device_p):
     """Put the proxy on the device, at rest, and restart the passivity observer."""
     for i in range(3):
@@ -145,7 +144,7 @@ def place_proxy(state, device_p):
     state[S_HAVE_PREV] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def coupled_predict(state, params, device_p, device_v, dt_s, place, centre_out, feed_out):
     """Step 1 of a coupled tick: the proxy's free velocity, and the velocity the bone engine
     evaluates the cut at.
@@ -203,7 +202,7 @@ def coupled_predict(state, params, device_p, device_v, dt_s, place, centre_out, 
     return flags
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def solve3(m, rhs, out):
     """out = m⁻¹·rhs for a 3×3 ``m`` (row-major (9,)) by Cramer's rule; False if singular."""
     c0 = m[4] * m[8] - m[5] * m[7]
@@ -223,7 +222,7 @@ def solve3(m, rhs, out):
     return True
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, embedded, scratch):
     """The proxy's velocity (into state's S_PROXY_V) with the cut treated implicitly:
     ``(A·I − J + dt/h·F·ŝᵀ)·v⁺ = A·v_free`` (module docstring); without the depth term for an
@@ -273,7 +272,7 @@ def cut_proxy_velocity(state, params, engine_out, jacobian, radius_mm, embedded,
             v[i] = a * state[S_FREE + i] / (a + beta)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def push_out(state, nx, ny, nz, depth_mm, params, push_scale=1.0):
     """Constrain the proxy velocity (state's S_PROXY_V) so that a penetration ``depth_mm``
     along the unit outward normal n shrinks to the skin: n·v ≥ rate (× ``push_scale``)."""
@@ -286,7 +285,7 @@ def push_out(state, nx, ny, nz, depth_mm, params, push_scale=1.0):
         state[S_PROXY_V + 2] += (rate - g) * nz
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def embedded_weight(area_mm2, radius_mm):
     """0 for a burr with at most EMBEDDED_FROM of its sphere in bone, 1 from EMBEDDED_SHARE
     on (wholly inside: no way out), a smooth step between."""
@@ -299,7 +298,7 @@ def embedded_weight(area_mm2, radius_mm):
     return u * u * (3.0 - 2.0 * u)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def rigid_normal(engine_out, radius_mm, embedded):
     """The burr's rigid contact: (nx, ny, nz, depth_mm), the unit outward normal and the
     depth of the cap in bone; depth 0 when there is none, or no way out (``embedded``)."""
@@ -315,7 +314,7 @@ def rigid_normal(engine_out, radius_mm, embedded):
     return bx / norm, by / norm, bz / norm, area / (2.0 * math.pi * radius_mm)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def coupled_finish(state, params, engine_out, jacobian, shaft_out, cut_weight, radius_mm, result,
                    scratch):
     """Step 2 of a coupled tick, after the bone engine ran at the proxy with the free
@@ -431,7 +430,7 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cut_weight, r
     return flags
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def raw_limits(state, params, force, dt_s):
     """The raw output on a device: the model's force (float64 (3,), N, grid frame, in place)
     clamped and slew-limited, nothing else. Returns CLAMPED if a limit acted."""

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from ..hot_kernel import hot_kernel
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def limit_force(force, previous, max_force_N, max_step_N):
     """Clamp ``force`` (float64 (3,), N, in place) to ``max_force_N`` in magnitude, then move
     it at most ``max_step_N`` away from ``previous`` (the force sent last tick; the slew limit

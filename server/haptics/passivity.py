@@ -16,10 +16,10 @@ Units: N, mm, s; energy N·mm (= mJ).
 
 from __future__ import annotations
 
-from numba import njit
+from ..hot_kernel import hot_kernel
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def observe(energy_mJ, previous_force, dx_mm, cap_mJ):
     """The observer after one interval: ``previous_force`` (float64 (3,), N) acted over the
     device's displacement ``dx_mm`` (float64 (3,)). Returns the new energy, at most
@@ -29,7 +29,7 @@ def observe(energy_mJ, previous_force, dx_mm, cap_mJ):
     return min(e, cap_mJ)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def control(energy_mJ, force, velocity_mm_s, dt_s, max_damping_N_s_mm):
     """Add to ``force`` (float64 (3,), N, in place) the damping −α·v that keeps the observed
     energy from going negative over the next interval if the device keeps ``velocity_mm_s``.

@@ -27,7 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from ..hot_kernel import hot_kernel
 
 #: Capacity of the sample ring: the window is at most RING − 1 intervals. At 1 kHz that is
 #: 31 ms, long enough to average a 0.05 mm quantum down to ~1.6 mm/s at rest, short enough
@@ -50,7 +51,7 @@ def new_ring(capacity: int = RING) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.zeros(2, dtype=np.int64))
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def reset(ring_state):
     """Forget every sample (e.g. when the device re-homes or the session restarts).
 
@@ -59,7 +60,7 @@ def reset(ring_state):
     ring_state[COUNT] = 0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def velocity_step(ring_t_s, ring_p_mm, ring_state, t_s, px, py, pz, noise_mm, max_span_s, out_v):
     """Push the sample (t_s; px,py,pz) into the ring, then estimate the velocity at it.
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from ...proto.messages import (
     FLAG_RESET_VELOCITY,
@@ -41,6 +40,7 @@ from ...proto.messages import (
 from ..bone.carve import TOUCH_FORBIDDEN
 from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from ..haptics.velocity import RING, reset, velocity_step
+from ..hot_kernel import hot_kernel
 from ..model.kernels import (
     OUT_COMPONENTS,
     OUT_CONTACT_AREA,
@@ -151,7 +151,7 @@ def ring_views(k: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
             m[M_RING:M_RING + 2])
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _in_range(f, start, count, limit):
     for i in range(start, start + count):
         if not -limit <= f[i] <= limit:  # false for NaN too
@@ -159,7 +159,7 @@ def _in_range(f, start, count, limit):
     return True
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _reset_velocity(k, m, t_us, ring_t, ring_p, ring_state, dev_v):
     reset(ring_state)
     m[M_T0] = t_us  # the window's times count from here: small numbers keep full precision
@@ -173,7 +173,7 @@ def _reset_velocity(k, m, t_us, ring_t, ring_p, ring_state, dev_v):
         k[W_V + i] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def pose_in(pose_i, pose_f, k, m):
     """The decoded pose (``wire.P_*``) in the grid frame: W_P, W_V, W_AXIS, W_RPM of ``k``,
     and M_STATUS (STATUS_STALE, STATUS_SLOW_SPINDLE) of ``m``.
@@ -276,7 +276,7 @@ def pose_in(pose_i, pose_f, k, m):
     return code
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _out3(k, x, y, z, reply_f, at, factor):
     """reply_f[at:at+3] = Aᵀ (x, y, z) · factor (Transform.direction_out, then scaled)."""
     ex = k[K_A] * x + k[K_A + 3] * y + k[K_A + 6] * z
@@ -288,7 +288,7 @@ def _out3(k, x, y, z, reply_f, at, factor):
         reply_f[at], reply_f[at + 1], reply_f[at + 2] = ex * factor, ey * factor, ez * factor
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def reply_raw(k, m, pose_i, out, shaft_out, touch, tx, removed_mm3, t_recv_us, t_send_us,
               bone_version):
     """The raw output of a tick in the engine frame, encoded into ``tx``; returns its length.
@@ -355,7 +355,7 @@ def reply_raw(k, m, pose_i, out, shaft_out, touch, tx, removed_mm3, t_recv_us, t
     return encode_reply_into(tx, reply_i, reply_f, flags & RAW_TAGGED != 0)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def reply_error(k, m, pose_i, error, t_recv_us, t_send_us, bone_version, tx):
     """An error REPLY (zero force, torque, vibration: SPEC 3.4) to ``pose_i`` encoded into
     ``tx``; its length."""

@@ -15,7 +15,6 @@ fixarray of 3 float 64, the tag nil or ``c4 10`` + 16 bytes, nothing after it.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from ...proto.messages import (
     MAX_REPLY_BYTES,
@@ -25,6 +24,7 @@ from ...proto.messages import (
     VERSION,
     Pose,
 )
+from ..hot_kernel import hot_kernel
 
 # Decoded POSE, integers: int64 (POSE_INTS,).
 P_SESSION = 0
@@ -96,7 +96,7 @@ def pose_arrays(pose: Pose, pose_i: np.ndarray, pose_f: np.ndarray) -> None:
                  *(velocity if velocity is not None else (0.0, 0.0, 0.0)))
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _uint(buf, i, n):
     """(value, next index) of the msgpack unsigned integer at ``buf[i]``; next index −1 if
     it is not one (or is ≥ 2⁶³, which no POSE field may be)."""
@@ -125,7 +125,7 @@ def _uint(buf, i, n):
     return v, i + 1 + width
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _float64(buf, i, n, bits, k):
     """Read the float 64 (``cb`` + 8 big-endian bytes) at ``buf[i]`` into ``bits[k]`` (a
     uint64 view of the float output); the next index, or −1 if it is not one."""
@@ -138,7 +138,7 @@ def _float64(buf, i, n, bits, k):
     return i + 9
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def decode_pose_into(buf, n, pose_i, pose_f):
     """Decode ``buf[:n]`` if it is a canonical POSE (module docstring) with every field in
     range (as ``proto.codec.decode_pose`` checks them); values are not checked.
@@ -212,7 +212,7 @@ def decode_pose_into(buf, n, pose_i, pose_f):
     return False
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _put_int(out, i, v):
     """msgpack's smallest form of the integer ``v`` (as msgpack-python packs a Python int)
     at ``out[i]``; the next index."""
@@ -253,7 +253,7 @@ def _put_int(out, i, v):
     return i + 1 + width
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _put_floats(out, i, bits, start, count, array):
     """``count`` float 64s from ``bits[start:]`` (a uint64 view), as a fixarray if ``array``;
     the next index."""
@@ -269,7 +269,7 @@ def _put_floats(out, i, bits, start, count, array):
     return i
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def encode_reply_into(out, reply_i, reply_f, tagged):
     """Write a REPLY into ``out`` (uint8 (≥ 327,)) from ``reply_i`` (int64 (REPLY_INTS,))
     and ``reply_f`` (float64 (REPLY_FLOATS,)): the bytes ``proto.codec.encode_reply_values``

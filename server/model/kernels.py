@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from ..hot_kernel import hot_kernel
 
 # Layout of the float64 result vector every material kernel fills (length N_OUT).
 OUT_FORCE = 0  # [0:3] force on the burr, world frame, N
@@ -32,7 +33,7 @@ ACC_JACOBIAN = N_OUT  # [18:27] ∂F/∂v_f row-major, world frame, N·s/mm (see
 N_ACC = N_OUT + 9
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def tool_basis(ax, ay, az):
     """Right-handed orthonormal basis (e1, e2, e3) with e3 = the unit tool axis.
 
@@ -53,7 +54,7 @@ def tool_basis(ax, ay, az):
     )
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def box_fraction(g0, half_a, half_b):
     """Fraction of a rectangular element where g0 + u + v > 0, u ∈ [−A, A], v ∈ [−B, B].
 
@@ -81,7 +82,7 @@ def box_fraction(g0, half_a, half_b):
     return 1.0 - t * t / (8.0 * r)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, radius):
     """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_ACC,)).
 
@@ -128,7 +129,7 @@ def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, r
     acc[10] += area * speed
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_sign, radius):
     """One element of a single material (Us folded into ``w_force``).
 
@@ -143,7 +144,7 @@ def accumulate(acc, frac, vn, st, ct, cp, sp, w_force, w_area, speed, k, spin_si
                       radius)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def rotate_jacobian(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
     """J_world = E·J_tool·Eᵀ in place in ``acc[ACC_JACOBIAN:]``, E = [e1 e2 e3] by columns."""
     j = ACC_JACOBIAN
@@ -163,7 +164,7 @@ def rotate_jacobian(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
         acc[j + 6 + c] = e1z * t1 + e2z * t2 + e3z * t3
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
     """Rotate the tool-frame force and torque of ``acc`` to the world frame into ``out`` and
     resolve the force into the thesis's components.
@@ -187,7 +188,7 @@ def finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out):
     resolve_components(out[0:3], out[12:15], v_feed, out[15:18])
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def resolve_components(force, normal, v_feed, out):
     """(feed, lateral, normal) of ``force`` into ``out`` (all float64 (3,)), as model.md
     defines them: feed = F·f̂ with f̂ = v_f/|v_f|; normal = F·ŝ (``normal`` the outward surface
@@ -214,7 +215,7 @@ def resolve_components(force, normal, v_feed, out):
     out[1] = fx * lx + fy * ly + fz * lz
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_element(acc, frac, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega, k, spin_sign,
                 radius, cutting):
     """Contact area of one element in bone, and its cut if it faces the feed."""
@@ -246,7 +247,7 @@ CAP_BLEND = 0.2
 WHOLE_FROM = 0.75
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def arc_moments(centre, half):
     """∫ of (1, cos φ, sin φ, cos²φ, sin²φ, cos φ·sin φ) dφ over [centre − half, centre + half]."""
     c2 = math.cos(2.0 * centre)
@@ -257,7 +258,7 @@ def arc_moments(centre, half):
             half + 0.5 * c2 * sh2, half - 0.5 * c2 * sh2, 0.5 * s2 * sh2)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def arcs_moments(ca, ha, cb, hb):
     """:func:`arc_moments` summed over the intersection of two arcs (centre, half-width ≤ π,
     rad): up to two pieces."""
@@ -282,7 +283,7 @@ def arcs_moments(ca, ha, cb, hb):
     return m0, mc, ms, mcc, mss, mcs
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _polar(x, y, z):
     """Polar angle from e3 of the tool-frame direction (x, y, z), rad; −1 for a zero vector."""
     rho = math.sqrt(x * x + y * y)
@@ -291,7 +292,7 @@ def _polar(x, y, z):
     return math.atan2(rho, z)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_cap(s1, s2, s3, v1, v2, v3, depth, radius, abs_omega, spin_sign, us, k, weight, acc):
     """The cut of the cap ``depth`` mm deep that a flat surface takes from the burr, integrated
     exactly, added ×``weight`` to the tool-frame accumulator ``acc`` (shape (N_ACC,)).
@@ -416,7 +417,7 @@ def cut_cap(s1, s2, s3, v1, v2, v3, depth, radius, abs_omega, spin_sign, us, k, 
     return measure
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def start_flat(centre, axis, v_feed, plane_point, plane_normal, acc, out):
     """Common start of the flat-workpiece kernels: zero ``acc`` (N_ACC,) and ``out``
     (N_OUT,), put the surface normal in both (it is the bone's normal everywhere).
@@ -450,7 +451,7 @@ def start_flat(centre, axis, v_feed, plane_point, plane_normal, acc, out):
     return d0, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, s1, s2, s3, v1, v2, v3
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
              sin_sub_p, radius, centre, axis, v_feed, omega, us, k, cutting, plane_point,
              plane_normal, acc, out):
@@ -513,7 +514,7 @@ def cut_flat(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, c
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
               sin_sub_p, radius, d0, s1, s2, s3, v1, v2, v3, abs_omega, spin_sign, us, k,
               cutting, acc):
@@ -620,7 +621,7 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                 acc[8] = count_before + 1.0
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _sub_fraction(ct2, st2, cp2, sp2, s1, s2, s3, d0, radius, half_dt, half_dp, curve,
                   cap_area, area_unit):
     """Bone fraction of one sub-element (centre (θ, φ) by cos and sin; extents half_dt,

@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
+from ..hot_kernel import hot_kernel
 from .kernels import box_fraction, finish, start_flat
 
 # Rows of the grid's element and sub-element tables (revolved.RevolvedGrid.elem / .sub).
 _RHO, _Z, _NR, _NZ, _TR, _TZ, _KAPPA = 0, 1, 2, 3, 4, 5, 6
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def accumulate_element(acc, frac, rho, z, nr, nz, tr, tz, cp, sp, vn, w_force, w_area,
                        abs_omega, kn, kg, spin_sign):
     """Add one element's cut (it faces the feed: vn = n·v_f > 0, mm/s) to ``acc``.
@@ -35,7 +34,7 @@ def accumulate_element(acc, frac, rho, z, nr, nz, tr, tz, cp, sp, vn, w_force, w
                                z, nr, nz, tr, tz, cp, sp, abs_omega * rho, spin_sign)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def accumulate_forces_revolved(acc, ft, fn, fg, area, vn, rho, z, nr, nz, tr, tz, cp, sp,
                                speed, spin_sign):
     """One element's cut into the tool-frame ``acc`` (shape (N_ACC,)): tangential |Ft| =
@@ -75,7 +74,7 @@ def accumulate_forces_revolved(acc, ft, fn, fg, area, vn, rho, z, nr, nz, tr, tz
     acc[10] += area * speed
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _element(acc, frac, rho, z, nr, nz, tr, tz, cp, sp, v1, v2, v3, w_force, w_area,
              abs_omega, kn, kg, spin_sign, cutting):
     acc[11] += w_area * frac
@@ -87,7 +86,7 @@ def _element(acc, frac, rho, z, nr, nz, tr, tz, cp, sp, v1, v2, v3, w_force, w_a
                            abs_omega, kn, kg, spin_sign)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def lowest_reach(segments, s_perp, s3):
     """min over the burr's surface of s·x (mm, x from the reference centre): the point that
     reaches deepest along −s. ``s_perp`` ≥ 0 and ``s3`` are the parts of s across and along
@@ -117,7 +116,7 @@ def lowest_reach(segments, s_perp, s3):
     return lowest
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def _sub_fraction(sub, j, ia, cp, sp, cos_off, sin_off, s1, s2, s3, d0, half_s, half_p,
                   curve):
     """Bone fraction of sub-element (ia, ·) of element j at the φ-offset (cos_off, sin_off)
@@ -134,7 +133,7 @@ def _sub_fraction(sub, j, ia, cp, sp, cos_off, sin_off, s1, s2, s3, d0, half_s, 
     return box_fraction(g, ha, hb)
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def cut_flat_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin_sub_p,
                       segments, centre, axis, v_feed, omega, us, kn, kg, cutting,
                       plane_point, plane_normal, acc, out):
