@@ -327,3 +327,15 @@ def test_a_long_session_from_ticks_keeps_its_peak_and_merges_close_cutting_runs(
         SessionReport.from_ticks(source="s", source_kind="session", t_s=t, status=status,
                                  hand_force_N=force, removed_mm3_by_material={},
                                  forbidden_contacts=[], threshold_N=float("nan"))
+
+
+@given(threshold=st.floats(0.0, 1e4), peak=st.floats(0.0, 1e4), n=st.integers(0, 50))
+def test_the_force_plot_draws_for_any_threshold_and_force(threshold, peak, n):
+    """A threshold of 5e-324 N with no force made the axis step underflow to 0 and the report
+    answer 500 (schemathesis); every valid threshold and force now gives an axis above both."""
+    from burrforce.server.report.svg import force_plot
+
+    t = np.linspace(0.0, 1.0, n)
+    f = np.linspace(0.0, peak, n)
+    svg = force_plot(t, f, threshold, [0.5], [(0.1, 0.2)])
+    assert svg.startswith("<svg") and svg.endswith("</svg>")

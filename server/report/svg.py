@@ -17,6 +17,9 @@ CUT_FILL = "#dbeafe"
 LINE = "#1f2937"
 THRESHOLD = "#d97706"
 FORBIDDEN = "#dc2626"
+#: The force axis reaches at least this, N: a report of a session that never pressed on bone,
+#: with a threshold of a few ulps, still has an axis (its ticks' step underflowed to 0).
+MIN_FORCE_AXIS_N = 1e-3
 
 
 def nice_ticks(hi: float, n: int = 5) -> list[float]:
@@ -44,7 +47,8 @@ def force_plot(t_s: np.ndarray, force_N: np.ndarray, threshold_N: float,
     t = np.asarray(t_s, dtype=np.float64)
     f = np.nan_to_num(np.asarray(force_N, dtype=np.float64), nan=0.0, posinf=0.0)
     t_max = max(float(t[-1]) if len(t) else 0.0, 1e-3)
-    f_ticks = nice_ticks(max(float(f.max()) if len(f) else 0.0, threshold_N) * 1.05)
+    f_ticks = nice_ticks(max(float(f.max()) if len(f) else 0.0, threshold_N,
+                             MIN_FORCE_AXIS_N) * 1.05)
     t_ticks = nice_ticks(t_max)
     x_hi, y_hi = t_ticks[-1], f_ticks[-1]
     pw, ph = WIDTH - LEFT - RIGHT, HEIGHT - TOP - BOTTOM
