@@ -188,7 +188,7 @@ def main(args: argparse.Namespace) -> int:
     bone = config.bone
     say = functools.partial(print, flush=True)
     say(f"loading {bone} and warming up the kernels (the first start compiles them: "
-        "about 30 s, once)...")
+        "about 40 s, once)...")
     t0 = time.monotonic()
     from ..api.journal import discard, discard_session
 
