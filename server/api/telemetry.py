@@ -24,7 +24,6 @@ supervisor) says why.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import mmap
@@ -260,8 +259,7 @@ class TelemetryReader:
         tick_last = p50 = p99 = None
         if with_ticks:
             tick_last, p50, p99 = newest_tick(mapped, installs, ticks.copy())
-        sample = _sample(session_id, installs, g, kc, mc, tick_last, p50, p99)
-        return dataclasses.replace(sample, loop=loop) if loop is not None else sample
+        return _sample(session_id, installs, g, kc, mc, tick_last, p50, p99, loop)
 
 
 def newest_tick(ring: TickRing, installs: int,
@@ -313,7 +311,8 @@ def _server(g: np.ndarray, v: np.ndarray, point: bool) -> list[float]:
 
 
 def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.ndarray,
-            tick_last: float | None, p50: float | None, p99: float | None) -> TelemetrySample:
+            tick_last: float | None, p50: float | None, p99: float | None,
+            loop: str | None) -> TelemetrySample:
     ri = m[M_REPLY:]
     rf = k[K_REPLY:]
     seq, t_recv = int(ri[R_SEQ]), int(ri[R_T_RECV])
@@ -352,4 +351,4 @@ def _sample(session_id: int, installs: int, g: np.ndarray, k: np.ndarray, m: np.
         velocity_mm_s=_server(g, k[W_V:W_V + 3], False),
         bone_version=int(ri[R_BONE_VERSION]) if current else None,
         removed_mm3=float(rf[R_REMOVED]) if current else None,
-        tick_us_last=tick_last, tick_us_p50=p50, tick_us_p99=p99, age_s=age)
+        tick_us_last=tick_last, tick_us_p50=p50, tick_us_p99=p99, age_s=age, loop=loop)
