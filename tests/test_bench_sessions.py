@@ -44,6 +44,10 @@ def test_rows_have_the_required_keys_and_consistent_counts(smoke):
         assert r["server_cpu_pct"] >= 0 and r["generator_cpu_pct"] >= 0
         assert r["server_cpu_per_session_pct"] == pytest.approx(
             r["server_cpu_pct"] / r["sessions"])
+        # The generator reads replies once a tick, so round trips must come from the
+        # kernel's arrival stamps; and the POSEs encoded ahead of the run still cut.
+        assert r["kernel_stamped_fraction"] == 1.0
+        assert r["cutting_fraction"] > 0.0
         if r["answered"]:
             assert 0 < r["rtt_p50_us"] <= r["rtt_p99_us"] <= r["rtt_p999_us"] <= r["rtt_max_us"]
             assert r["send_late_p50_us"] >= 0

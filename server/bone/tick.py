@@ -25,7 +25,8 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
               path_cand):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft, then
     extend the burr's path (``history``: ``path_ring``, ``path_meta``, and ``path_cand`` for
-    this tick's nearby capsules) with this tick's position if it carved.
+    this tick's nearby capsules) with this tick's position if it carved, and keep that
+    position in ``previous`` for the next tick's carve.
 
     All vectors are in the grid frame; ``axis`` is the unit tool axis. A burr with no bone
     brick within reach skips the force stage entirely: far from bone a tick costs a few brick
@@ -66,6 +67,9 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     history_record(path_ring, path_meta, centre[0], centre[1], centre[2], radius,
                    carved and touch[TOUCH_NEAR_BONE] != 0.0,
                    min(spacing[0], min(spacing[1], spacing[2])))
+    if carved:
+        for n in range(3):
+            previous[n] = centre[n]
     return removed_any
 
 
@@ -81,3 +85,13 @@ def add_to(total, part):
     """total += part, float64 (n,) each (this tick's removal into the running total)."""
     for n in range(part.shape[0]):
         total[n] += part[n]
+
+
+@hot_kernel
+def removed_mm3(removed, spacing):
+    """Total of a tick's removal per label (float64 (256,), units of 255² voxel volumes, as
+    ``bone_tick`` fills it), in mm³ for voxels of ``spacing`` (3,) mm."""
+    total = 0.0
+    for n in range(removed.shape[0]):
+        total += removed[n]
+    return total * (spacing[0] * spacing[1] * spacing[2] / (255.0 * 255.0))
