@@ -10,8 +10,9 @@ import pytest
 
 import burrforce.server as server_pkg
 
-#: The packages whose kernels run every tick or every packet.
-HOT_PACKAGES = ("bone", "model", "hotloop", "haptics")
+#: The packages whose kernels run every tick or every packet, and the device host's servo-tick
+#: renderer (``devices.render``, 1 kHz on the machine driving the device).
+HOT_PACKAGES = ("bone", "model", "hotloop", "haptics", "devices.render")
 #: Modules there whose kernels are not on that path: loading and scanning whole bones, and the
 #: shared bone's seqlock (a few instructions per tick, no arrays).
 NOT_HOT = ("bone.bricks", "bone.seqlock", "bone.phantoms", "bone.loaders", "bone.hounsfield")
@@ -23,8 +24,10 @@ def _kernels():
     found = []
     for package in HOT_PACKAGES:
         pkg = importlib.import_module(f"{server_pkg.__name__}.{package}")
-        for info in pkgutil.walk_packages(pkg.__path__, f"{pkg.__name__}."):
-            module = importlib.import_module(info.name)
+        names = ([info.name for info in pkgutil.walk_packages(pkg.__path__, f"{pkg.__name__}.")]
+                 if hasattr(pkg, "__path__") else [pkg.__name__])
+        for module_name in names:
+            module = importlib.import_module(module_name)
             for name, obj in vars(module).items():
                 py_func = getattr(obj, "py_func", None)
                 if py_func is not None and py_func.__module__ == module.__name__:
@@ -42,7 +45,7 @@ def test_the_walk_finds_the_kernels_of_every_hot_package_and_every_exception() -
     names = {f"{m}.{n}" for m, n, _ in kernels}
     assert {"bone.tick.bone_tick", "bone.force.cut_voxels", "bone.carve.carve_sphere",
             "model.kernels.accumulate_forces", "hotloop.wire.decode_pose_into",
-            "haptics.coupling.coupled_finish"} <= names
+            "haptics.coupling.coupled_finish", "devices.render.render"} <= names
     modules = {m for m, _, _ in kernels}
     for excluded in NOT_HOT:  # an exception that names nothing is stale
         assert any(m == excluded or m.startswith(f"{excluded}.") for m in modules), excluded
@@ -65,7 +68,7 @@ def test_hot_kernels_are_cached_nogil_and_without_reference_counting(package: st
     counting off (the force stage took 96 µs with it and 36 µs without), cached, nogil."""
     plain = []
     for module, name, kernel in _kernels():
-        if not module.startswith(f"{package}.") or not _is_hot(module):
+        if not (module == package or module.startswith(f"{package}.")) or not _is_hot(module):
             continue
         options = kernel.targetoptions
         cached = type(kernel._cache).__name__ != "NullCache"  # numba keeps cache= there

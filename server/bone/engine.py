@@ -486,7 +486,8 @@ class BoneEngine:
         (not every tick, and not again while it continues, whichever neighbour is the most
         covered). ``now`` is the event's time, s."""
         if self.touch[TOUCH_FORBIDDEN] <= 0.0:
-            self._touching = frozenset()
+            if self._touching:  # only when contact ends: no allocation on every packet
+                self._touching = frozenset()
             return
         now_touching = frozenset(int(x) for x in np.flatnonzero(self._touched[:, 0]))
         for label in sorted(now_touching - self._touching):

@@ -34,11 +34,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from ..haptics.limits import limit_force
 from ..haptics.passivity import control
 from ..haptics.profiles import DeviceProfile
+from ..hot_kernel import hot_kernel
 
 # -- the coupling model (what the newest good reply said) -------------------------------------
 M_VALID = 0  # 1 once a model is held
@@ -86,7 +86,7 @@ STALE_S = 0.03
 MAX_AGE_S = 0.05
 
 
-@njit(cache=True, nogil=True)
+@hot_kernel
 def render(params, model, state, counters, x_mm, v_mm_s, t_s, out_N):
     """One servo tick: the force to command now, into ``out_N`` (float64 (3,), N, the
     session's axes, before mapping to the device).
