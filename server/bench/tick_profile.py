@@ -6,7 +6,10 @@ and reports the callgrind instruction count (Ir) per tick: it runs itself under
 the measured ticks (client requests through a tiny C helper built with the system's cc and
 ``valgrind/callgrind.h``), so start-up, imports and warm-up cost neither time nor counts.
 ``--part carve`` counts only the carving kernel (the force stage is then tick − carve).
-``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared machine).
+``--cutter fluted`` ploughs the same groove with a 6-flute round burr of the same radius, whose
+tick is the revolved one (``bone.tick_revolved``: every shape other than the round abrasive
+burr). ``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared
+machine).
 
 Examples::
 
@@ -37,8 +40,12 @@ compile_cache.configure()
 from ..bone import BoneEngine, ShaftParams  # noqa: E402
 from ..bone.carve import carve_sphere  # noqa: E402
 from ..model import thesis_cases  # noqa: E402
+from ..model.shapes import Burr, Fluted, Sphere  # noqa: E402
 from .accuracy import oblique_rotation  # noqa: E402
 from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block  # noqa: E402
+
+#: Flutes of ``--cutter fluted``'s burr.
+FLUTES = 6
 
 _HELPER_C = """
 #include <valgrind/callgrind.h>
@@ -66,6 +73,8 @@ def _ticks(args: argparse.Namespace, measured: int, helper: ctypes.CDLL | None =
     grid = groove_block(args.voxel_mm, direction)
     n_theta = max(2, round((args.elements / 2.0) ** 0.5))
     engine = BoneEngine(grid, shaft=ShaftParams(length_mm=0.0), n_theta=n_theta)
+    if args.cutter == "fluted":
+        engine.set_burr(Burr(Sphere(engine.params.radius_mm), Fluted(n_flutes=FLUTES)))
     engine.warm_up()
     velocity = case.feed_velocity_mm_s
     feed_dir = case.feed_direction / np.linalg.norm(case.feed_direction)
@@ -77,6 +86,8 @@ def _ticks(args: argparse.Namespace, measured: int, helper: ctypes.CDLL | None =
     warm = round(0.5 / (case.feed_mm_s * 1e-3))
     g = engine.grid
     carve_only = args.part == "carve"
+    if carve_only and args.cutter != "abrasive":
+        raise SystemExit("--part carve times the round abrasive burr's carve only")
     if carve_only:  # compile outside the measurement
         far = np.full(3, -1e5)
         carve_sphere(g.density, g.swept, g.labels, engine.materials.forbidden, g.brick_bone,
@@ -133,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--angle", type=float, default=60.0, help="burr angle, degrees")
     p.add_argument("--ticks", type=int, default=200, help="measured ticks. Default 200")
     p.add_argument("--part", choices=("tick", "carve"), default="tick")
+    p.add_argument("--cutter", choices=("abrasive", "fluted"), default="abrasive",
+                   help=f"the round burr's cutter: abrasive (default) or {FLUTES} flutes")
     p.add_argument("--no-callgrind", action="store_true",
                    help="wall time per tick instead of instruction counts")
     p.add_argument("--child", help=argparse.SUPPRESS)
@@ -141,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         _ticks(args, args.ticks, _callgrind_helper(args.child))
         return 0
     label = (f"{args.grid} {args.voxel_mm:g} mm {args.elements} el {args.orientation} "
-             f"{args.angle:g}° {args.part}")
+             f"{args.angle:g}° {args.cutter} {args.part}")
     if args.no_callgrind:
         ns = np.asarray(_ticks(args, args.ticks)) / 1e3
         print(f"{label}: p50 {np.median(ns):.1f} µs, p99 {np.percentile(ns, 99):.1f} µs "

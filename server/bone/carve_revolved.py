@@ -15,7 +15,7 @@ import numpy as np
 
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
-from ..model.shapes import Burr
+from ..model.shapes import Arc, Burr
 from .bricks import BRICK, BRICK_SHIFT
 from .carve import N_TOUCH, TOUCH_BRICKS, TOUCH_FORBIDDEN, TOUCH_NEAR_BONE, TOUCH_VISITED
 from .voxels import CACHE_SHIFT, cache_origin, plane_fraction, voxel_span
@@ -28,23 +28,61 @@ GEO_RHO_MAX = 9  # the profile's largest ρ, mm
 GEO_Z_TIP = 10  # z of the tip (lowest), mm
 GEO_Z_TOP = 11  # z of the top (highest), mm
 GEO_HALF_DIAG = 12  # half a voxel's diagonal, mm
-N_GEO = 13
+GEO_R_BALL = 13  # the farthest point of the solid from the reference centre, mm
+N_GEO = 14
+#: The carve's rows are cut to the ball of the solid's farthest point, widened by this share of
+#: a voxel against rounding (a voxel there covers nothing: only the cost depends on it).
+BALL_SLACK_VOXELS = 1e-6
+
+
+def farthest_mm(burr: Burr) -> float:
+    """Distance from the reference centre to the farthest point of the solid, mm: the
+    largest over its profile segments (a line's at an end; an arc's at an end, or where the
+    ray from the centre through the arc's centre meets it, if that lies on the arc)."""
+    far = 0.0
+    for seg in burr.shape.profile():
+        if isinstance(seg, Arc):
+            psi_lo, psi_hi = sorted((seg.psi0, seg.psi1))
+            far = max(far, *(math.hypot(seg.rho_c + seg.r * math.cos(psi),
+                                        seg.z_c + seg.r * math.sin(psi))
+                             for psi in (psi_lo, psi_hi)))
+            centre = math.hypot(seg.rho_c, seg.z_c)
+            if centre == 0.0:
+                far = max(far, seg.r)
+                continue
+            away = math.atan2(seg.z_c, seg.rho_c)
+            turns = math.floor((psi_lo - away) / (2.0 * math.pi))
+            if any(psi_lo <= away + 2.0 * math.pi * n <= psi_hi for n in (turns, turns + 1)):
+                far = max(far, centre + seg.r)
+        else:
+            far = max(far, math.hypot(seg.rho0, seg.z0), math.hypot(seg.rho1, seg.z1))
+    return far
+
+
+def _ends(burr: Burr) -> tuple[float, float]:
+    """(z_tip, z_top) of the burr's profile, mm: the profiles shapes.py builds run
+    monotonically in z from tip to top."""
+    profile = burr.shape.profile()
+    return (float(profile[0].at(np.array([0.0]))[1][0]),
+            float(profile[-1].at(np.array([1.0]))[1][0]))
 
 
 def shape_bounds(burr: Burr) -> np.ndarray:
-    """(ρ_max, z_tip, z_top) of the burr's profile in its tool frame, mm, float64 (3,). The
-    profiles shapes.py builds run monotonically in z from tip to top."""
-    profile = burr.shape.profile()
-    z_tip = float(profile[0].at(np.array([0.0]))[1][0])
-    z_top = float(profile[-1].at(np.array([1.0]))[1][0])
-    return np.array([burr.shape.max_radius_mm, z_tip, z_top], dtype=np.float64)
+    """(ρ_max, z_tip, z_top, r_ball) of the burr's profile in its tool frame, mm, float64
+    (4,); r_ball: ``bounding_radius_mm``."""
+    z_tip, z_top = _ends(burr)
+    return np.array([burr.shape.max_radius_mm, z_tip, z_top, bounding_radius_mm(burr)],
+                    dtype=np.float64)
 
 
 def bounding_radius_mm(burr: Burr) -> float:
-    """Distance from the reference centre to the farthest point of the solid, mm (sizes the
-    coverage cache like a sphere of this radius)."""
-    rho_max, z_tip, z_top = shape_bounds(burr)
-    return float(math.hypot(rho_max, max(abs(z_tip), abs(z_top))))
+    """Distance from the reference centre to the farthest point of the solid, mm
+    (``farthest_mm``, and never more than the corner of its (ρ_max, z) box): the carve's rows
+    and the coverage's first reject stop there, and the coverage cache is sized like a sphere
+    of this radius."""
+    z_tip, z_top = _ends(burr)
+    box = math.hypot(burr.shape.max_radius_mm, max(abs(z_tip), abs(z_top)))
+    return float(min(farthest_mm(burr), box))
 
 
 @hot_kernel
@@ -64,6 +102,7 @@ def fill_geometry(geo, axis, bounds, spacing):
     geo[GEO_Z_TIP] = bounds[1]
     geo[GEO_Z_TOP] = bounds[2]
     geo[GEO_HALF_DIAG] = 0.5 * math.sqrt(spacing[0] ** 2 + spacing[1] ** 2 + spacing[2] ** 2)
+    geo[GEO_R_BALL] = bounds[3]
 
 
 def profile_table(segments: np.ndarray) -> np.ndarray:
@@ -164,6 +203,10 @@ def revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz):
     ay = geo[7]
     az = geo[8]
     half_diag = geo[GEO_HALF_DIAG]
+    # Beyond the solid's ball by half a diagonal: at least that far from the solid.
+    ball = geo[GEO_R_BALL] + half_diag
+    if dx * dx + dy * dy + dz * dz >= ball * ball:
+        return 0
     z = dx * ax + dy * ay + dz * az
     if z < geo[GEO_Z_TIP] - half_diag or z > geo[GEO_Z_TOP] + half_diag:
         return 0
@@ -319,6 +362,10 @@ def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, br
                             max(cy + z_tip * ay, cy + z_top * ay) + near, hy, ny)
     k_lo, k_hi = voxel_span(min(cz + z_tip * az, cz + z_top * az) - near,
                             max(cz + z_tip * az, cz + z_top * az) + near, hz, nz)
+    # Rows are cut to the solid's ball too (``revolved_coverage``'s first reject): for a round
+    # burr the cylinder about its axis holds half as much again as the ball.
+    ball = geo[GEO_R_BALL] + half_diag + BALL_SLACK_VOXELS * min(hx, min(hy, hz))
+    ball2 = ball * ball
     any_removed = False
     visited = 0
     o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
@@ -350,7 +397,13 @@ def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, br
                     dx = i * hx - cx
                     for j in range(b0, b1 + 1):
                         dy = j * hy - cy
+                        rest = ball2 - dx * dx - dy * dy
+                        if rest <= 0.0:
+                            continue
+                        reach_z = math.sqrt(rest)
                         k_first, k_last = _row_span(dx, dy, cz, hz, geo, r_out, c0, c1)
+                        k_first = max(k_first, math.ceil((cz - reach_z) / hz))
+                        k_last = min(k_last, math.floor((cz + reach_z) / hz))
                         for k in range(k_first, k_last + 1):
                             old = swept[i, j, k]
                             if old == 255:

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ..hot_kernel import hot_kernel
+from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT, finish
 from ..model.kernels_revolved import accumulate_forces_revolved
 from ..model.revolved import RevolvedGrid
@@ -59,7 +59,7 @@ def revolved_corners(burr: Burr, grid: RevolvedGrid) -> tuple[np.ndarray, np.nda
             np.ascontiguousarray(np.sin(phi)))
 
 
-@hot_kernel
+@hot_inline
 def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, density,
                            profile, geo, cache, o0, o1, o2, tick):
     """``voxels._availability`` with this burr's own coverage (``carve_revolved``): the share
@@ -105,7 +105,7 @@ def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz
     return a_num / a_den
 
 
-@hot_kernel
+@hot_inline
 def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx,
                          hy, hz, cx, cy, cz, profile, geo, cache, o0, o1, o2, tick):
     """``voxels.sample_bone`` for a burr of revolution, without the path: (fraction,
@@ -146,7 +146,7 @@ def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px
             gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
 
 
-@hot_kernel
+@hot_inline
 def _sample_corner(vert, j, k, rho, z, cpv, spv, density, swept, labels, us_tab, usk_tab,
                    brick_bone, cx, cy, cz, geo, hx, hy, hz, profile, cache, o0, o1, o2, tick):
     """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``."""

@@ -27,7 +27,7 @@ def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, si
 
     All vectors are in the grid frame; ``centre`` is the burr's reference centre and ``axis``
     the unit tool axis. ``profile``: (n_seg, 9) ``carve_revolved.profile_table``;
-    ``bounds``: (ρ_max, z_tip, z_top) of the shape (``carve_revolved.shape_bounds``);
+    ``bounds``: (ρ_max, z_tip, z_top, r_ball) of the shape (``carve_revolved.shape_bounds``);
     ``geo``: (N_GEO,) scratch filled here;
     ``shaft_base``: (3,) scratch, the centre of the top disc where the shaft starts (its
     torque is reported about the reference centre). The rest as ``carve_revolved``,
