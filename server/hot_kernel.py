@@ -17,7 +17,21 @@ from __future__ import annotations
 
 from numba import njit
 
+
+def _without_reference_counting() -> dict[str, bool]:
+    """``{"_nrt": False}`` where this numba knows the option (a private one; CI runs numba
+    0.68), else nothing: a numba without it then compiles these kernels slower but right,
+    instead of every kernel failing on its first call with an unknown option
+    (``tests/test_hot_kernels.py`` fails on it, so CI notices)."""
+    try:
+        from numba.core.cpu import CPUTargetOptions
+    except ImportError:
+        return {}
+    return {"_nrt": False} if hasattr(CPUTargetOptions, "_nrt") else {}
+
+
+_OPTIONS = {"cache": True, "nogil": True, **_without_reference_counting()}
 #: A kernel called once per tick or packet (or from one).
-hot_kernel = njit(cache=True, nogil=True, _nrt=False)
+hot_kernel = njit(**_OPTIONS)
 #: A small helper inlined into its callers at numba's IR level.
-hot_inline = njit(cache=True, nogil=True, _nrt=False, inline="always")
+hot_inline = njit(**_OPTIONS, inline="always")
