@@ -320,17 +320,51 @@ def _row_span(dx, dy, cz, hz, geo, r_out, k_lo, k_hi):
     return max(k_lo, first), min(k_hi, last)
 
 
+@hot_inline
+def row_reach(dx, dy, cz, hz, geo, r_out, ball2, k_lo, k_hi):
+    """The voxels k in [k_lo, k_hi] of the row (dx, dy from the reference centre; z = k·hz)
+    that the burr can cover: within ``_row_span`` and within the ball of squared radius
+    ``ball2`` (mm²) about the reference centre. Returns (first, last); empty when first >
+    last."""
+    rest = ball2 - dx * dx - dy * dy
+    if rest <= 0.0:
+        return 1, 0
+    reach_z = math.sqrt(rest)
+    k_first, k_last = _row_span(dx, dy, cz, hz, geo, r_out, k_lo, k_hi)
+    return (max(k_first, math.ceil((cz - reach_z) / hz)),
+            min(k_last, math.floor((cz + reach_z) / hz)))
+
+
+@hot_inline
+def cached_row_reach(rows, o0, o1, tick, i, j, dx, dy, cz, hz, geo, r_out, ball2, k_lo, k_hi):
+    """``row_reach`` of row (i, j), computed at most once per tick (``rows``: entries
+    (tick, first, last) at (i − o0, j − o1), as the coverage cache keeps its own)."""
+    a = i - o0
+    b = j - o1
+    if 0 <= a < rows.shape[0] and 0 <= b < rows.shape[1]:
+        if rows[a, b, 0] == tick:
+            return rows[a, b, 1], rows[a, b, 2]
+        first, last = row_reach(dx, dy, cz, hz, geo, r_out, ball2, k_lo, k_hi)
+        rows[a, b, 0] = tick
+        rows[a, b, 1] = first
+        rows[a, b, 2] = last
+        return first, last
+    return row_reach(dx, dy, cz, hz, geo, r_out, ball2, k_lo, k_hi)
+
+
 @hot_kernel
 def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
                    brick_forbidden, spacing, centre, profile, geo, carve, version_next,
-                   removed, touch, touched, cache, tick):
+                   removed, touch, touched, cache, rows, tick):
     """Sweep the voxels a burr of revolution covers (one call per tick).
 
     As ``carve.carve_sphere`` (same arguments, outputs and units), with the burr given by its
     ``profile`` (``profile_table``) and this tick's ``geo``
     (``fill_geometry``); ``centre`` is the reference centre. Every voxel within reach is
     examined (no skipping by the last position: a sphere's half-space argument does not hold
-    for other solids); voxels already swept through cost one byte read.
+    for other solids); voxels already swept through cost one byte read. ``rows``: int64
+    (n0, n1, 3), the coverage cache's first two dimensions: each row's reach along k
+    (``row_reach``), computed once per tick rather than once per brick the row crosses.
 
     Returns:
         True if any bone was removed.
@@ -397,13 +431,11 @@ def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, br
                     dx = i * hx - cx
                     for j in range(b0, b1 + 1):
                         dy = j * hy - cy
-                        rest = ball2 - dx * dx - dy * dy
-                        if rest <= 0.0:
-                            continue
-                        reach_z = math.sqrt(rest)
-                        k_first, k_last = _row_span(dx, dy, cz, hz, geo, r_out, c0, c1)
-                        k_first = max(k_first, math.ceil((cz - reach_z) / hz))
-                        k_last = min(k_last, math.floor((cz + reach_z) / hz))
+                        k_first, k_last = cached_row_reach(rows, o0, o1, tick, i, j, dx, dy,
+                                                           cz, hz, geo, r_out, ball2, k_lo,
+                                                           k_hi)
+                        k_first = max(k_first, c0)
+                        k_last = min(k_last, c1)
                         for k in range(k_first, k_last + 1):
                             old = swept[i, j, k]
                             if old == 255:

@@ -272,6 +272,8 @@ class BoneEngine:
         self._revolved = revolved
         # Entries are stamped with the call that wrote them (stamps count from 1).
         self._cache = np.zeros(shape, dtype=np.int64)
+        # The revolved carve's per-row reach, over the same neighbourhood (carve_revolved).
+        self._rows = np.zeros((shape[0], shape[1], 3), dtype=np.int64)
         if carved_unknown:
             # Another shape's cuts are not capsules of the path: it no longer knows them all.
             self.forget_path()
@@ -428,7 +430,7 @@ class BoneEngine:
             g.brick_version, self._brick_forbidden, g.spacing_mm, g.version + 1,
             self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
             rv.shaft_base, self._removed_tick, self._removed_total, self.touch, self._touched,
-            rv.vert, self._acc, self.out, self.shaft_out, self._cache, self._stamp)
+            rv.vert, self._acc, self.out, self.shaft_out, self._cache, self._rows, self._stamp)
 
     def step(
         self,

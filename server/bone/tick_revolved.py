@@ -22,7 +22,7 @@ def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, si
                        us_tab, usk_tab, forbidden, brick_bone, brick_full, brick_version,
                        brick_forbidden, spacing, version_next, shaft_radius, shaft_length,
                        shaft_stiffness, shaft_base, removed, removed_total, touch, touched,
-                       vert, acc, out, shaft_out, cache, tick):
+                       vert, acc, out, shaft_out, cache, rows, tick):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft.
 
     All vectors are in the grid frame; ``centre`` is the burr's reference centre and ``axis``
@@ -30,7 +30,8 @@ def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, si
     ``bounds``: (ρ_max, z_tip, z_top, r_ball) of the shape (``carve_revolved.shape_bounds``);
     ``geo``: (N_GEO,) scratch filled here;
     ``shaft_base``: (3,) scratch, the centre of the top disc where the shaft starts (its
-    torque is reported about the reference centre). The rest as ``carve_revolved``,
+    torque is reported about the reference centre); ``rows``: the carve's per-row scratch.
+    The rest as ``carve_revolved``,
     ``force_revolved.cut_voxels_revolved`` and ``tick.bone_tick``.
 
     Returns:
@@ -42,7 +43,7 @@ def bone_tick_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, si
     removed_any = carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full,
                                  brick_version, brick_forbidden, spacing, centre, profile,
                                  geo, carved, version_next, removed, touch, touched, cache,
-                                 tick)
+                                 rows, tick)
     if removed_any:
         add_to(removed_total, removed)
     if touch[TOUCH_NEAR_BONE] != 0.0:
