@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
 import random
 import select
 import socket
@@ -579,3 +580,41 @@ def test_every_valid_form_of_a_pose_gets_the_same_answer_and_oversized_none(serv
     same = ("seq", "t_client_us", "t_recv_us", "t_send_us")
     assert r3._replace(**{k: 0 for k in same}) == r4._replace(**{k: 0 for k in same})
     assert r4.error == OK and not r4.status & STATUS_STALE
+
+
+def test_a_spare_warms_at_the_lowest_priority_and_serves_at_the_loops():
+    """A warming spare must not take CPU from loops already serving; once warm, and so once
+    it may replace one, it runs at their priority (where raising it is allowed: as root)."""
+    from burrforce.server.hotloop.process import HOT_LOOP_NICE, SPARE_WARMING_NICE
+
+    hot = HotLoopProcess(HotLoopConfig(sessions=()))
+    seen: set[int] = set()
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            try:
+                seen.add(os.getpriority(os.PRIO_PROCESS, hot.pid))
+            except (RuntimeError, OSError):  # not spawned yet, or gone
+                pass
+            time.sleep(0.002)
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        hot.spawn_spare()
+        done.set()
+        watcher.join()
+        final = os.getpriority(os.PRIO_PROCESS, hot.pid)
+        if os.geteuid() == 0:
+            assert SPARE_WARMING_NICE in seen, seen
+            assert final == HOT_LOOP_NICE
+        else:  # neither way is allowed: it keeps the usual priority throughout
+            assert SPARE_WARMING_NICE not in seen and final == os.getpriority(
+                os.PRIO_PROCESS, 0)
+        hot.start()  # the spare takes a worker's place at that priority
+        assert os.getpriority(os.PRIO_PROCESS, hot.pid) == final
+    finally:
+        done.set()
+        watcher.join()
+        hot.stop()
