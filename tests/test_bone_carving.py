@@ -232,3 +232,19 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     assert diff.max() <= 1
     assert np.count_nonzero(diff) <= 8
     assert np.count_nonzero(grids[0].swept) > 0
+
+
+@given(st.lists(st.floats(0.0, 1e9), max_size=256), st.integers(0, 2**32 - 1))
+def test_the_ticks_removal_is_summed_as_numpy_sums(values, seed):
+    """``removed_mm3`` (one compiled call per cutting packet) adds in numpy's pairwise order,
+    so replies and recordings carry the same bits as when numpy summed the removal."""
+    from burrforce.server.bone.tick import pairwise_sum, removed_mm3
+
+    a = np.asarray(values, dtype=np.float64)
+    assert pairwise_sum(a, 0, len(a)) == a.sum()
+    labels = np.zeros(256)  # as a tick leaves it: a few materials removed, the rest zero
+    rng = np.random.default_rng(seed)
+    labels[rng.choice(256, min(len(a), 256), replace=False)] = a[:256]
+    spacing = rng.uniform(0.01, 1.0, 3)
+    assert removed_mm3(labels, spacing) == float(labels.sum()) * (
+        float(np.prod(spacing)) / (255.0 * 255.0))

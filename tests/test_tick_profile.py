@@ -1,5 +1,5 @@
 """``python -m burrforce.server.bench.tick_profile`` in its wall-time mode (the callgrind mode is
-the same ticks under valgrind): both cutters plough the groove and report a tick time."""
+the same ticks under valgrind): every burr ploughs the groove and reports a tick time."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import pytest
 from burrforce.server.bench import tick_profile
 
 
-@pytest.mark.parametrize("cutter", ["abrasive", "fluted"])
-def test_wall_time_per_tick_for_each_cutter(cutter, capsys):
-    assert tick_profile.main(["--no-callgrind", "--ticks", "20", "--cutter", cutter]) == 0
+@pytest.mark.parametrize("burr", list(tick_profile.BURR_CHOICES))
+def test_wall_time_per_tick_for_each_burr(burr, capsys):
+    assert tick_profile.main(["--no-callgrind", "--ticks", "20", "--burr", burr]) == 0
     line = capsys.readouterr().out
-    assert f" {cutter} tick: " in line
+    assert f" {burr} tick: " in line
     p50, p99 = map(float, re.search(r"p50 ([\d.]+) µs, p99 ([\d.]+) µs", line).groups())
     assert 0.0 < p50 <= p99
 
@@ -22,4 +22,4 @@ def test_wall_time_per_tick_for_each_cutter(cutter, capsys):
 def test_the_carve_alone_is_the_round_abrasive_burrs():
     with pytest.raises(SystemExit, match="round abrasive"):
         tick_profile.main(["--no-callgrind", "--ticks", "5", "--part", "carve",
-                           "--cutter", "fluted"])
+                           "--burr", "round-fluted"])

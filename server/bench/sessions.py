@@ -6,10 +6,13 @@ groove raster (α = 60°, 0.5 mm deep, 3 mm/s, 60 000 rpm) through the real prot
 NEW_STREAM → keyed POSEs (``client.udp.SessionRules``: codec, tag, stream).
 
 One load generator (this process, one thread) sends every session's POSE at each 1 ms
-deadline of an absolute schedule, then sleeps in ``select`` until the next deadline, reading
-replies as they come; nothing spins, so the generator does not take a core per session. The
-POSEs are encoded and signed before the schedule starts, so during it the generator only sends
-and receives. Its
+deadline of an absolute schedule; nothing spins, so the generator does not take a core per
+session. The POSEs are encoded and signed before the schedule starts, so during it the
+generator only sends and receives. Between deadlines it either sleeps and reads the replies at
+the next one, once a tick (``--read tick``, the default), or sleeps in ``select`` and reads each
+reply as it comes (``--read reply``: a wake-up per reply, on the cores the server uses). Reading
+once a tick changes no round trip, which is taken from the kernel's arrival stamp, so it is used
+only if the warm-up's replies all carried one; otherwise the run reads per reply and says so. Its
 own cost is reported (its thread's CPU % over the window and how late its sends were against
 the schedule) so that generator overload can be told from server overload. While it drives,
 it runs at the hot loop's raised priority where it may (the loop raises its own: a saturated
@@ -20,7 +23,7 @@ Definitions (per N, over the measured window, after the warm-up):
 - round trip: from the send stamp (``time.monotonic_ns`` just before ``send``) to the
   reply's arrival on the generator's socket, stamped by the
   kernel (``SO_TIMESTAMPNS``, so a generator busy sending does not inflate it; the user-space
-  read time when the kernel gives none);
+  read time when the kernel gives none, which only reading per reply allows);
 - lost: POSEs sent in the window − replies to them received by the end of a drain period;
 - late: answered POSEs whose round trip exceeded the 1 ms haptic period (the reply missed the
   next tick); lost ones are counted apart;
@@ -191,9 +194,11 @@ def _send_tick(streams: list[_Stream], k: int, due_ns: int, late_ns: np.ndarray)
 
 
 def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: list[int],
-          kernel_stamps: bool) -> dict:
+          kernel_stamps: bool, read_per_tick: bool = True) -> dict:
     """Run the schedule: ``warmup_s`` then ``seconds`` of ticks, then the drain. Returns the
-    generator's and the server's CPU over the measured window and the send lateness, ns."""
+    generator's and the server's CPU over the measured window, the send lateness, ns, and
+    ``read``: "tick" if the window's replies were read once a tick (``read_per_tick``, where
+    every warm-up reply carried the kernel's stamp), else "reply"."""
     warm = round(warmup_s * 1000)
     ticks = warm + round(seconds * 1000)
     for s in streams:
@@ -230,7 +235,8 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
     gc.disable()
     start = clock() + 20 * PERIOD_NS
     cpu0 = gen0 = wall0 = None
-    report: dict = {}
+    report: dict = {"read": "reply"}
+    per_tick = False
     with _generator_scheduling(report):
         try:
             k = 0
@@ -239,15 +245,19 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
                 now = clock()
                 if now >= due:
                     if k == warm:
+                        per_tick = read_per_tick and kernel_stamps and all(
+                            s.replies and all(kernel for kernel, _, _ in s.replies)
+                            for s in streams)
+                        report["read"] = "tick" if per_tick else "reply"
                         cpu0 = [cpu_s(p) for p in worker_pids]
                         gen0, wall0 = time.thread_time_ns(), clock()
-                    if kernel_stamps:
+                    if per_tick:
                         for s in streams:
                             drain(s)
                     _send_tick(streams, k, due, late_ns[k])
                     k += 1
                     continue
-                if kernel_stamps:
+                if per_tick:
                     # The kernel stamps each reply as it arrives: reading them at the next
                     # deadline, in one wake-up a tick, changes no round trip and spares the
                     # server's cores a wake-up per reply (measured: 29 % of a core for
@@ -347,7 +357,7 @@ def _worker_pids(health: dict) -> list[int]:
     return pids
 
 
-def run_one(n: int, workers: int | None, warmup_s: float, seconds: float,
+def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: str = "tick",
             progress=lambda text: None) -> dict:
     """One session count on a fresh ``burrforce serve``: a row of the results."""
     extra = ["--workers", str(workers)] if workers is not None else []
@@ -377,7 +387,7 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float,
             for s in streams:
                 _handshake(s)
             progress(f"N = {n}: {warmup_s:g} s warm-up, {seconds:g} s measured")
-            timing = drive(streams, warmup_s, seconds, pids, stamps)
+            timing = drive(streams, warmup_s, seconds, pids, stamps, read == "tick")
             health = _health(c.http_url)
         finally:
             for s in streams:
@@ -393,6 +403,7 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float,
         "send_late_max_us": float(late_us.max()) if len(late_us) else None,
         "generator_cpu_pct": timing["generator_cpu_pct"],
         "generator_nice": timing["generator_nice"],
+        "read": timing["read"],
         "server_cpu_pct": timing["server_cpu_pct"],
         "server_cpu_per_session_pct": None if timing["server_cpu_pct"] is None
         else timing["server_cpu_pct"] / n,
@@ -406,15 +417,15 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float,
 
 
 def run(counts: list[int], workers: int | None, warmup_s: float, seconds: float,
-        progress=lambda text: None) -> dict:
+        progress=lambda text: None, read: str = "tick") -> dict:
     rows = []
     for n in counts:
-        rows.append(run_one(n, workers, warmup_s, seconds, progress))
+        rows.append(run_one(n, workers, warmup_s, seconds, read, progress))
         r = rows[-1]
         progress(f"N = {n}: p50 {r['rtt_p50_us'] or 0:.0f} µs, p99 {r['rtt_p99_us'] or 0:.0f} "
                  f"µs, lost {r['lost']}/{r['sent']}, generator {r['generator_cpu_pct']:.0f} %")
     return {"voxel_mm": VOXEL_MM, "warmup_s": warmup_s, "seconds": seconds,
-            "workers_option": workers, "rows": rows}
+            "workers_option": workers, "read_option": read, "rows": rows}
 
 
 def _f(value: float | None, fmt: str = ".0f") -> str:
@@ -435,8 +446,11 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"each on its own workpiece at {result['voxel_mm']:g} mm voxels, cutting at "
         f"α = {ALPHA_DEG:g}°, {DEPTH_MM:g} mm deep, {FEED_MM_S:g} mm/s, {RPM:g} rpm, keyed "
         "POSEs at 1 kHz from one single-threaded load generator (all encoded and signed "
-        "before the run; it wakes once a tick, reads the replies the kernel has stamped and "
-        "sends the tick's POSEs); "
+        "before the run; "
+        + ("it wakes once a tick, reads the replies the kernel has stamped and sends the "
+           "tick's POSEs" if result.get("read_option", "tick") == "tick" else
+           "it wakes for each reply, `--read reply`")
+        + "); "
         f"{result['warmup_s']:g} s warm-up, then {result['seconds']:g} s measured.", "",
         "Round trip: send stamp → the reply's kernel arrival stamp. Lost: sent in the window "
         f"− answered after a {DRAIN_S:g} s drain. Late: answered with a round trip > 1 ms "
@@ -453,8 +467,9 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
             f"| POSEs sent / answered / lost | {r['sent']} / {r['answered']} / {r['lost']} |",
             f"| round trip p50 / p99 / p99.9 / max µs | {_f(r['rtt_p50_us'])} / "
             f"{_f(r['rtt_p99_us'])} / {_f(r['rtt_p999_us'])} / {_f(r['rtt_max_us'])} |",
-            f"| generator's read of the reply p50 / p99 µs (at the next deadline while the "
-            f"kernel stamps arrivals) | "
+            f"| replies read | {'once a tick' if r.get('read') == 'tick' else 'per reply'} |",
+            f"| generator's read of the reply p50 / p99 µs (at the next deadline when read "
+            f"once a tick) | "
             f"{_f(r['read_p50_us'])} / {_f(r['read_p99_us'])} |",
             f"| late replies (> 1 ms) | {r['late']} ({_f(r['late_pct'], '.2f')} %) |",
             f"| replies while cutting | {100 * r['cutting_fraction']:.0f} % |",
@@ -510,6 +525,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    default=10.0, help="measured window per session count, s. Default 10")
     p.add_argument("--warmup-s", type=float_in(0.0, 600.0, "warm-up", "s"), default=1.0,
                    help="streamed before the window, not measured, s. Default 1")
+    p.add_argument("--read", choices=("tick", "reply"), default="tick",
+                   help="read the replies once a tick, by the kernel's arrival stamps (the "
+                        "default; per reply where the kernel gives none), or per reply as "
+                        "each arrives (a wake-up per reply)")
     p.add_argument("--json", action="store_true",
                    help="print the rows as JSON on stdout (progress goes to stderr)")
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
@@ -521,7 +540,7 @@ def main(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
-    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say)
+    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say, args.read)
     md, js = write_results(result, args.out)
     print(json.dumps(result["rows"], indent=2) if args.json else md.read_text())
     say(f"results written to {md} and {js}")

@@ -6,10 +6,10 @@ and reports the callgrind instruction count (Ir) per tick: it runs itself under
 the measured ticks (client requests through a tiny C helper built with the system's cc and
 ``valgrind/callgrind.h``), so start-up, imports and warm-up cost neither time nor counts.
 ``--part carve`` counts only the carving kernel (the force stage is then tick − carve).
-``--cutter fluted`` ploughs the same groove with a 6-flute round burr of the same radius, whose
-tick is the revolved one (``bone.tick_revolved``: every shape other than the round abrasive
-burr). ``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared
-machine).
+``--burr NAME`` ploughs the same groove with another burr, its lowest point as deep: a 6-flute
+round burr of the same radius (``round-fluted``) or ``bench accuracy``'s shapes (``BURRS``);
+each runs the revolved tick (``bone.tick_revolved``: every burr but the round abrasive one).
+``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared machine).
 
 Examples::
 
@@ -43,9 +43,12 @@ from ..model import thesis_cases  # noqa: E402
 from ..model.shapes import Burr, Fluted, Sphere  # noqa: E402
 from .accuracy import oblique_rotation  # noqa: E402
 from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block  # noqa: E402
+from .shapes import BURRS, centre_at_depth  # noqa: E402
 
-#: Flutes of ``--cutter fluted``'s burr.
-FLUTES = 6
+#: ``--burr`` choices: the round abrasive burr (the engine's own, radius 2 mm), the same sphere
+#: with 6 flutes, and the shapes ``bench accuracy`` checks against their references.
+BURR_CHOICES = {"round": None, "round-fluted": Burr(Sphere(2.0), Fluted(n_flutes=6))} | {
+    name: burr for name, burr in BURRS.items() if name != "sphere"}
 
 _HELPER_C = """
 #include <valgrind/callgrind.h>
@@ -73,20 +76,25 @@ def _ticks(args: argparse.Namespace, measured: int, helper: ctypes.CDLL | None =
     grid = groove_block(args.voxel_mm, direction)
     n_theta = max(2, round((args.elements / 2.0) ** 0.5))
     engine = BoneEngine(grid, shaft=ShaftParams(length_mm=0.0), n_theta=n_theta)
-    if args.cutter == "fluted":
-        engine.set_burr(Burr(Sphere(engine.params.radius_mm), Fluted(n_flutes=FLUTES)))
+    burr = BURR_CHOICES[args.burr]
+    centre = case.centre_mm  # the thesis's: the round burr's lowest point at its depth
+    if burr is not None:
+        engine.set_burr(burr)
+        if not isinstance(burr.shape, Sphere):
+            axis = case.axis / np.linalg.norm(case.axis)
+            centre = centre_at_depth(burr.shape, axis, case.depth_mm)
     engine.warm_up()
     velocity = case.feed_velocity_mm_s
     feed_dir = case.feed_direction / np.linalg.norm(case.feed_direction)
     mid = 0.5 * (np.asarray(GROOVE_BLOCK_LO_MM) + np.asarray(GROOVE_BLOCK_HI_MM))
     total_mm = 0.5 + args.ticks * case.feed_mm_s * 1e-3
-    start = np.array([mid[0], mid[1], 0.0]) - 0.5 * total_mm * feed_dir + case.centre_mm
+    start = np.array([mid[0], mid[1], 0.0]) - 0.5 * total_mm * feed_dir + centre
     axis_g = grid.to_grid_vector(case.axis / np.linalg.norm(case.axis))
     feed_g = grid.to_grid_vector(velocity)
     warm = round(0.5 / (case.feed_mm_s * 1e-3))
     g = engine.grid
     carve_only = args.part == "carve"
-    if carve_only and args.cutter != "abrasive":
+    if carve_only and burr is not None:
         raise SystemExit("--part carve times the round abrasive burr's carve only")
     if carve_only:  # compile outside the measurement
         far = np.full(3, -1e5)
@@ -144,8 +152,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--angle", type=float, default=60.0, help="burr angle, degrees")
     p.add_argument("--ticks", type=int, default=200, help="measured ticks. Default 200")
     p.add_argument("--part", choices=("tick", "carve"), default="tick")
-    p.add_argument("--cutter", choices=("abrasive", "fluted"), default="abrasive",
-                   help=f"the round burr's cutter: abrasive (default) or {FLUTES} flutes")
+    p.add_argument("--burr", choices=tuple(BURR_CHOICES), default="round",
+                   help="round (default: the round abrasive burr, R 2 mm), round-fluted (the "
+                        "same with 6 flutes) or one of bench accuracy's shapes")
     p.add_argument("--no-callgrind", action="store_true",
                    help="wall time per tick instead of instruction counts")
     p.add_argument("--child", help=argparse.SUPPRESS)
@@ -154,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         _ticks(args, args.ticks, _callgrind_helper(args.child))
         return 0
     label = (f"{args.grid} {args.voxel_mm:g} mm {args.elements} el {args.orientation} "
-             f"{args.angle:g}° {args.cutter} {args.part}")
+             f"{args.angle:g}° {args.burr} {args.part}")
     if args.no_callgrind:
         ns = np.asarray(_ticks(args, args.ticks)) / 1e3
         print(f"{label}: p50 {np.median(ns):.1f} µs, p99 {np.percentile(ns, 99):.1f} µs "
