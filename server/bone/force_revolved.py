@@ -105,7 +105,7 @@ def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz
     return a_num / a_den
 
 
-@hot_inline
+@hot_kernel
 def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx,
                          hy, hz, cx, cy, cz, profile, geo, cache, o0, o1, o2, tick):
     """``voxels.sample_bone`` for a burr of revolution, without the path: (fraction,
