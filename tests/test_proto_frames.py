@@ -23,12 +23,14 @@ def _norm(v) -> float:
 
 
 def assert_close(got, expected, scale: float = 1.0, rel: float = 1e-9) -> None:
-    """``got`` equals ``expected`` within ``rel`` × (scale + the vectors' size)."""
+    """``got`` equals ``expected`` within ``rel`` × (scale + the vectors' size), and never
+    closer than the smallest normal double: the relative bound underflows to 0 for vectors
+    of subnormal size (CI drew a torque of 5e-324 against 0)."""
     got = np.asarray(got, dtype=np.float64)
     expected = np.asarray(expected, dtype=np.float64)
     assert got.shape == expected.shape
     tol = rel * (scale + float(np.max(np.abs(expected), initial=0.0))
-                 + float(np.max(np.abs(got), initial=0.0)))
+                 + float(np.max(np.abs(got), initial=0.0))) + np.finfo(np.float64).tiny
     assert float(np.max(np.abs(got - expected), initial=0.0)) <= tol, (got, expected)
 
 
