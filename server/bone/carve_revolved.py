@@ -35,10 +35,12 @@ N_GEO = 14
 BALL_SLACK_VOXELS = 1e-6
 
 
-def farthest_mm(burr: Burr) -> float:
+def bounding_radius_mm(burr: Burr) -> float:
     """Distance from the reference centre to the farthest point of the solid, mm: the
     largest over its profile segments (a line's at an end; an arc's at an end, or where the
-    ray from the centre through the arc's centre meets it, if that lies on the arc)."""
+    ray from the centre through the arc's centre meets it, if that lies on the arc). The
+    carve's rows and the coverage's first reject stop there, and the coverage cache is sized
+    like a sphere of this radius."""
     far = 0.0
     for seg in burr.shape.profile():
         if isinstance(seg, Arc):
@@ -59,30 +61,15 @@ def farthest_mm(burr: Burr) -> float:
     return far
 
 
-def _ends(burr: Burr) -> tuple[float, float]:
-    """(z_tip, z_top) of the burr's profile, mm: the profiles shapes.py builds run
-    monotonically in z from tip to top."""
-    profile = burr.shape.profile()
-    return (float(profile[0].at(np.array([0.0]))[1][0]),
-            float(profile[-1].at(np.array([1.0]))[1][0]))
-
-
 def shape_bounds(burr: Burr) -> np.ndarray:
     """(ρ_max, z_tip, z_top, r_ball) of the burr's profile in its tool frame, mm, float64
-    (4,); r_ball: ``bounding_radius_mm``."""
-    z_tip, z_top = _ends(burr)
+    (4,); r_ball: ``bounding_radius_mm``. The profiles shapes.py builds run monotonically in
+    z from tip to top."""
+    profile = burr.shape.profile()
+    z_tip = float(profile[0].at(np.array([0.0]))[1][0])
+    z_top = float(profile[-1].at(np.array([1.0]))[1][0])
     return np.array([burr.shape.max_radius_mm, z_tip, z_top, bounding_radius_mm(burr)],
                     dtype=np.float64)
-
-
-def bounding_radius_mm(burr: Burr) -> float:
-    """Distance from the reference centre to the farthest point of the solid, mm
-    (``farthest_mm``, and never more than the corner of its (ρ_max, z) box): the carve's rows
-    and the coverage's first reject stop there, and the coverage cache is sized like a sphere
-    of this radius."""
-    z_tip, z_top = _ends(burr)
-    box = math.hypot(burr.shape.max_radius_mm, max(abs(z_tip), abs(z_top)))
-    return float(min(farthest_mm(burr), box))
 
 
 @hot_kernel

@@ -411,8 +411,6 @@ class BoneEngine:
             g.version += 1
         if shared is not None and carve:
             write_end(self._header_at, g.version)
-        if carve and cutting and rv is not None:  # bone_tick keeps its own
-            self._previous[:] = centre_g
         self.ticks += 1
         return removed
 
