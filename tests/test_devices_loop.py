@@ -4,8 +4,11 @@ loop in its own process with the simulated device; the watchdog measured; REST a
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import httpx
@@ -338,6 +341,59 @@ def test_sigterm_zeroes_the_emulated_falcons_motors(falcon_loop):
     pushed = [r[0] for r in rows if any(r[1:4])]
     assert not pushed or (max(pushed) - t_term) * 1e-9 <= WATCHDOG_S
     assert process.status()["state"] == "stopped"
+
+
+#: The device process's entry, run under the USB emulator's preload. SIGTERM arrives while a
+#: finalizer runs, as when the garbage collector drops one of numba's compiler objects in the
+#: middle of homing: Python runs the handler inside ``__del__``, prints the StopRequested it
+#: raises and drops it.
+SIGNAL_IN_FINALIZER = r"""
+import json, os, signal, sys, time
+from multiprocessing import RawArray
+from burrforce.server.devices import stats as st
+from burrforce.server.devices.loop import DeviceLoopConfig, run
+from burrforce.server.devices.mapping import WorkspaceMap
+
+class SignalledWhileFinalized:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100):  # the handler runs here, inside the finalizer
+            pass
+
+class Events:
+    signalled_s = None
+    def put(self, text):
+        print(json.dumps({"event": text}), flush=True)
+        if text.startswith("Falcon: homing.") and Events.signalled_s is None:
+            Events.signalled_s = time.monotonic()
+            SignalledWhileFinalized()  # dropped at once: its finalizer runs now
+
+stats = RawArray("d", st.N_SLOTS)
+config = DeviceLoopConfig(device="falcon", host="127.0.0.1", port=9, session=5,
+                          key_hex="11" * 32, workspace=WorkspaceMap(), home_timeout_s=30.0)
+run(config, stats, Events())
+print(json.dumps({"after_signal_s": time.monotonic() - Events.signalled_s,
+                  "state": st.STATES[int(stats[st.ST_STATE])]}), flush=True)
+"""
+
+
+def test_a_stop_whose_exception_was_dropped_still_ends_homing(emulated_usb):
+    """The stop request outlives its exception: a SIGTERM handled inside a finalizer (where
+    Python drops what the handler raises) still ends homing within a few cycles, through
+    close(), instead of homing on until the timeout."""
+    EmulatedUsb = emulated_usb
+    with EmulatedUsb("falcon", firmware_loaded=True) as emu:
+        done = subprocess.run([sys.executable, "-c", SIGNAL_IN_FINALIZER], env=emu.client_env(),
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr[-4000:]
+        lines = [json.loads(line) for line in done.stdout.splitlines()]
+        events = [x["event"] for x in lines if "event" in x]
+        assert "StopRequested" in done.stderr  # the exception was dropped, as intended
+        assert events[-1] == "stopped before the device was ready", events
+        result = lines[-1]
+        assert result["state"] == "stopped"
+        assert result["after_signal_s"] < 1.0, result  # a Falcon cycle is 1 ms
+        assert not any(emu.state()["motor_command"])
 
 
 def test_sigterm_while_homing_unwinds_cleanly(stack, emulated_usb):

@@ -30,11 +30,15 @@ SID = 5
 CSP = "default-src 'none'; style-src 'unsafe-inline'; img-src data:"
 
 
-def _stream(stack, sid: int, points, forces: list[float] | None = None) -> None:
-    """One exchange per point (engine frame, mm) at 60 000 rpm; |force| of each reply got."""
+def _stream(stack, sid: int, points, forces: list[float] | None = None,
+            sent_s: list[float] | None = None) -> None:
+    """One exchange per point (engine frame, mm) at 60 000 rpm; |force| of each reply got,
+    and the monotonic time each packet went out (s)."""
     session = stack.plane.get(sid)
     with BurrClient(*stack.udp_address, session.id, session.key_hex) as client:
         for p in points:
+            if sent_s is not None:
+                sent_s.append(time.monotonic())
             try:
                 reply = client.exchange(tuple(p), rpm=60000.0, timeout_s=0.5).reply
             except (TimeoutError, ServerGone):
@@ -66,12 +70,13 @@ def streamed(stack):
     stack.add_session(source, Parameters(), session_id=SID)
     stack.plane.set_material(SID, TRABECULAR_LABEL, None, {"forbidden": True})
     forces: list[float] = []
+    sent_s: list[float] = []
     # The burr (2 mm) 1 mm into the 1.5 mm shell, then 3 mm down: into the core.
     shallow = [(2.0 + 0.01 * i, 0.0, 1.0) for i in range(300)]
     deep = [(2.0 + 0.01 * i, 4.0, -1.0) for i in range(300)]
-    _stream(stack, SID, shallow + deep, forces)
+    _stream(stack, SID, shallow + deep, forces, sent_s)
     assert wait_until(lambda: _caught_up(stack, SID))
-    return {"forces": forces}
+    return {"forces": forces, "first_sent_s": sent_s[0], "deep_sent_s": sent_s[len(shallow)]}
 
 
 def _api(stack) -> httpx.Client:
@@ -109,8 +114,13 @@ def test_the_report_is_the_engines_volumes_and_the_sampled_forces(stack, streame
     assert contacts[0]["material"] == "trabecular"
     first = state["events"][0]
     assert contacts[0]["position_mm"] == pytest.approx(first["position_mm"])
-    # In the deep groove: after the shallow one (300 packets, ~0.3 s).
-    assert 0.2 < contacts[0]["time_s"] <= report["duration_s"]
+    # In the deep groove: after the shallow one. Both clocks are this machine's monotonic
+    # one. The report counts from its first 100 Hz sample, never before the stream began;
+    # on a busy machine the sampler starts late, so that base is not the stream's start.
+    assert first["time_s"] >= streamed["deep_sent_s"]
+    t0_s = first["time_s"] - contacts[0]["time_s"]
+    assert streamed["first_sent_s"] - 2 / stack.plane.history.hz <= t0_s
+    assert 0.0 < contacts[0]["time_s"] <= report["duration_s"]
     assert report["started_at"] and "T" in report["started_at"]
 
 

@@ -131,9 +131,11 @@ class HapticDevice(ABC):
             self._opened = True
 
     def home(self, timeout_s: float = 30.0,
-             progress: Callable[[str], None] | None = None) -> bool:
+             progress: Callable[[str], None] | None = None,
+             cancelled: Callable[[], bool] | None = None) -> bool:
         """Bring the device to a known position reference (the Falcon: the user moves the
-        grip through its range). True once homed; False if ``timeout_s`` passed first.
+        grip through its range). True once homed; False if ``timeout_s`` passed first or
+        ``cancelled()`` became true (checked every cycle where the back-end waits).
         ``progress`` receives instructions for the user."""
         return True
 

@@ -142,21 +142,35 @@ class DeviceLoop:
         self.sock: socket.socket | None = None
 
     # -- set-up ------------------------------------------------------------------------------
+    def _check_stop(self) -> None:
+        """Raise StopRequested if a stop was asked for. The signal handler raises it too,
+        but where the signal lands inside a finalizer (a ``__del__`` run by the garbage
+        collector) Python prints the exception and drops it: only the flag is sure."""
+        if self.stop_requested:
+            raise StopRequested
+
     def open(self) -> None:
+        """Open (and home) the device and the actuator, then the stream's socket. Raises
+        StopRequested when asked to stop meanwhile."""
         c = self.config
         self.device = create_device(c.device)
         self.device.open()
+        self._check_stop()
         info = self.device.info
         self.say(f"device: {info.model} ({info.backend}), servo {info.servo_rate_hz:g} Hz, max "
                  f"force {info.limits.max_force_N:g} N")
         if c.home:
             self.stats[st.ST_STATE] = st.STATES.index("homing")
-            if not self.device.home(c.home_timeout_s, progress=self.say):
+            homed = self.device.home(c.home_timeout_s, progress=self.say,
+                                     cancelled=lambda: self.stop_requested)
+            self._check_stop()
+            if not homed:
                 raise DeviceError(f"the device did not home within {c.home_timeout_s:g} s: "
                                   "move the grip slowly through its whole range, then retry")
         if c.actuator:
             self.actuator = create_actuator(c.actuator)
             self.actuator.open()
+            self._check_stop()
             self.say(f"actuator: {c.actuator}")
         self.renderer = CouplingRenderer(info.limits, c.workspace.scale, c.stale_s,
                                          passivity=c.passivity)

@@ -235,10 +235,12 @@ class FalconDevice(HapticDevice):
                            buttons=buttons, t_ns=t_ns)
 
     def home(self, timeout_s: float = 30.0,
-             progress: Callable[[str], None] | None = None) -> bool:
+             progress: Callable[[str], None] | None = None,
+             cancelled: Callable[[], bool] | None = None) -> bool:
         """Wait (cycling at zero force, red LED) until the firmware reports all three axes
         homed; then the LED turns green. The user must pull the grip all the way out and
-        push it all the way in. True once homed, False if ``timeout_s`` passed first."""
+        push it all the way in. True once homed; False if ``timeout_s`` passed first or
+        ``cancelled()`` became true (asked once a cycle)."""
         if not self.is_open:
             raise DeviceError("open the Falcon before homing it")
         say = progress if progress is not None else log.info
@@ -253,6 +255,8 @@ class FalconDevice(HapticDevice):
         deadline = time.monotonic() + timeout_s
         next_reminder = time.monotonic() + HOMING_REMINDER_S
         while time.monotonic() < deadline:
+            if cancelled is not None and cancelled():
+                return False
             self.cycle(zero)
             if self._homed:
                 self.cycle(zero)

@@ -143,9 +143,11 @@ class ForceDimensionDevice(HapticDevice):
                 self._id = -1
 
     def home(self, timeout_s: float = 30.0,
-             progress: Callable[[str], None] | None = None) -> bool:
+             progress: Callable[[str], None] | None = None,
+             cancelled: Callable[[], bool] | None = None) -> bool:
         """Run the SDK's automatic initialisation if the device is not initialised yet. It
-        blocks until done (``timeout_s`` cannot interrupt it); the device moves by itself."""
+        blocks until done (neither ``timeout_s`` nor ``cancelled`` can interrupt it); the
+        device moves by itself."""
         if not self.is_open:
             raise DeviceError("open the device before homing it")
         drd, ident = self._drd, self._id
