@@ -32,6 +32,9 @@ def test_precedence_file_environment_flags(tmp_path):
     ("", {"BURRFORCE_UDP_PORT": "abc"}, "BURRFORCE_UDP_PORT"),
     ("", {"BURRFORCE_TOKEN": "short"}, "at least 16"),
     ("", {"BURRFORCE_MAX_SESSIONS": "0"}, "max_sessions"),
+    ("[server]\nwake_ahead_us = -5\n", {}, "wake-ahead lead must be within [0, 5000] µs"),
+    ("", {"BURRFORCE_WAKE_CPU_SHARE": "2"}, "CPU share must be within [0.01, 1]"),
+    ("", {"BURRFORCE_WAKE_AHEAD_US": "soon"}, "wake_ahead_us has the wrong type"),
 ])
 def test_bad_settings_say_what_is_wrong(tmp_path, text, env, words):
     toml = tmp_path / "c.toml"
@@ -39,6 +42,17 @@ def test_bad_settings_say_what_is_wrong(tmp_path, text, env, words):
     with pytest.raises(ValueError, match=None) as err:
         load_config(toml, None, env)
     assert words in str(err.value)
+
+
+def test_waking_ahead_from_file_environment_and_flags(tmp_path):
+    """The hot loops' waking ahead (``hotloop.wake``) is set like the rest; 0 turns it off."""
+    toml = tmp_path / "c.toml"
+    toml.write_text("[server]\nwake_ahead_us = 200\nwake_cpu_share = 0.3\n")
+    config = load_config(toml, None, {})
+    assert (config.wake.lead_us, config.wake.cpu_share, config.wake.enabled) == (200, 0.3, True)
+    config = load_config(toml, {"wake_ahead_us": 0.0}, {"BURRFORCE_WAKE_CPU_SHARE": "0.5"})
+    assert (config.wake.lead_us, config.wake.cpu_share, config.wake.enabled) == (0, 0.5, False)
+    assert ServeConfig().wake.enabled
 
 
 def test_a_missing_file_is_an_error(tmp_path):

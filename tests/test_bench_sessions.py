@@ -77,13 +77,17 @@ def test_worker_pids_come_from_the_pool_else_from_the_single_loop():
         bench_sessions._worker_pids({"supervisor": {"pid": None}, "workers": []})
 
 
-def test_reading_each_reply_as_it_comes(tmp_path, capsys):
+def test_reading_each_reply_as_it_comes_from_loops_that_do_not_wake_ahead(tmp_path, capsys):
     """``--read reply``: the generator wakes for each reply (the fallback where the kernel
-    stamps nothing); the round trip still ends at the arrival, no later than the read."""
+    stamps nothing); the round trip still ends at the arrival, no later than the read.
+    ``--wake-ahead-us 0`` reaches ``serve``: its loops block until each datagram."""
     code = main(["bench", "sessions", "--sessions", "1", "--seconds", "0.5", "--warmup-s",
-                 "0.2", "--read", "reply", "--json", "--out", str(tmp_path)])
+                 "0.2", "--read", "reply", "--wake-ahead-us", "0", "--json", "--out",
+                 str(tmp_path)])
     assert code == 0
     (row,) = json.loads(capsys.readouterr().out)
     assert row["read"] == "reply" and row["lost"] == 0 and row["sent"] == 500
     assert 0 < row["rtt_p50_us"] <= row["read_p50_us"]
-    assert "| replies read | per reply |" in (tmp_path / "sessions.md").read_text()
+    md = (tmp_path / "sessions.md").read_text()
+    assert "| replies read | per reply |" in md and "--wake-ahead-us 0)" in md
+    assert json.loads((tmp_path / "sessions.json").read_text())["wake_ahead_us_option"] == 0

@@ -15,6 +15,8 @@ TOML (``burrforce serve --config FILE``)::
     max_sessions = 16           # sessions held at once (each keeps its bone in memory)
     workers = 3                 # hot-loop processes, worker i on udp_port + i (serve's
                                 # default: one per core less one)
+    wake_ahead_us = 300         # poll from this long before a stream's next packet; 0: off
+    wake_cpu_share = 0.4        # ...while a loop is awake less than this share of a core
 
     [session]                   # the default session serve starts with
     bone = "phantom:temporal"
@@ -38,6 +40,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from ..haptics.profiles import PROFILES
+from ..hotloop.wake import DEFAULT_CPU_SHARE, DEFAULT_LEAD_US, WakeConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -83,6 +86,9 @@ class ServeConfig:
         workers: hot-loop processes; worker i listens on ``udp_port + i``, each session runs
             on one of them for life. None: one (``burrforce serve`` picks
             ``hotloop.process.default_workers()``).
+        wake_ahead_us, wake_cpu_share: each hot loop wakes this long before its streams'
+            predicted packets and polls for them, while it is awake less than this share of
+            a core (``hotloop.wake``); a lead of 0 blocks until each datagram arrives.
         bone, voxel_mm, frame: the default session's bone and engine frame.
         device: the haptic device profile of the default session (``haptics.PROFILE_NAMES``):
             its output is then coupled. None: no device, the raw force.
@@ -102,6 +108,8 @@ class ServeConfig:
     cors_origins: tuple[str, ...] = ()
     max_sessions: int = 16
     workers: int | None = None
+    wake_ahead_us: float = DEFAULT_LEAD_US
+    wake_cpu_share: float = DEFAULT_CPU_SHARE
     bone: str = "phantom:temporal"
     voxel_mm: float | None = None
     frame: str = "si_mm"
@@ -127,6 +135,7 @@ class ServeConfig:
             if self.udp_port and self.udp_port + self.workers - 1 > 65535:
                 raise ValueError(f"{self.workers} workers need UDP ports {self.udp_port}.."
                                  f"{self.udp_port + self.workers - 1}: past 65535")
+        WakeConfig(self.wake_ahead_us, self.wake_cpu_share)  # raises what is wrong with them
         if not (isinstance(self.upload_max_mb, (int, float)) and
                 math.isfinite(self.upload_max_mb) and self.upload_max_mb > 0):
             raise ValueError(f"upload_max_mb must be a positive number, got "
@@ -148,6 +157,11 @@ class ServeConfig:
         return 1 if self.workers is None else self.workers
 
     @property
+    def wake(self) -> WakeConfig:
+        """The hot loops' waking ahead (raises ValueError for a bad lead or share)."""
+        return WakeConfig(self.wake_ahead_us, self.wake_cpu_share)
+
+    @property
     def upload_max_bytes(self) -> int:
         return int(self.upload_max_mb * (1 << 20))
 
@@ -155,7 +169,7 @@ class ServeConfig:
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
                     "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions",
-                    "workers"),
+                    "workers", "wake_ahead_us", "wake_cpu_share"),
          "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
                      "no_auth")}
 

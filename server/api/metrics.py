@@ -142,9 +142,22 @@ class LoopStats:
         packets = CounterMetricFamily(
             "burrforce_packets", "Datagrams by outcome (received, replied, noticed, and one "
             "reason per datagram not processed normally)", labels=["outcome"])
-        for name, value in stats["counters"].items():
-            packets.add_metric([name], value)
+        counters = stats["counters"]
+        for name, value in counters.items():
+            if not name.startswith("wake_"):
+                packets.add_metric([name], value)
         yield packets
+        wake = CounterMetricFamily(
+            "burrforce_wake_ahead", "The hot loops' polling windows ahead of a stream's "
+            "predicted datagram, by how they ended: caught (it came while polling), missed "
+            "(it did not), starved (not polled: the loop had spent its CPU share)",
+            labels=["outcome"])
+        for outcome in ("caught", "missed", "starved"):
+            wake.add_metric([outcome], counters.get(f"wake_{outcome}", 0))
+        yield wake
+        yield CounterMetricFamily(
+            "burrforce_wake_poll_seconds", "Time the hot loops spent polling for predicted "
+            "datagrams", value=counters.get("wake_spin_ms", 0) / 1000.0)
         hist = HistogramMetricFamily(
             "burrforce_tick_seconds", "Time of the bone stage (carve + force + shaft) per "
             "tick", labels=["session"])

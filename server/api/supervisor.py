@@ -128,7 +128,8 @@ class Supervisor:
         def warm() -> None:
             if self._stop.wait(delay_s):
                 return
-            spare = HotLoopProcess(HotLoopConfig(self.plane.hot.config.host, 0, ()))
+            spare = HotLoopProcess(HotLoopConfig(self.plane.hot.config.host, 0, (),
+                                                 self.plane.hot.config.wake))
             try:
                 spare.spawn_spare()
             except RuntimeError as exc:
@@ -143,15 +144,16 @@ class Supervisor:
         threading.Thread(target=warm, name="burrforce-spare", daemon=True).start()
 
     def _take_spare(self, address: tuple[str, int]) -> HotLoopProcess:
+        wake = self.plane.hot.config.wake  # every worker wakes ahead alike
         with self._spare_lock:
             spare, self.spare = self.spare, None
         if spare is not None and spare.is_alive() and spare.spare:
             # A spare reads its configuration only when started: it can take any port.
-            spare.config = HotLoopConfig(address[0], address[1], ())
+            spare.config = HotLoopConfig(address[0], address[1], (), wake)
             return spare
         if spare is not None:
             spare.stop()
-        return HotLoopProcess(HotLoopConfig(address[0], address[1], ()))
+        return HotLoopProcess(HotLoopConfig(address[0], address[1], (), wake))
 
     def public(self) -> dict:
         """For /v1/health: the pool's state, worker 0's pid, and the restarts (of every

@@ -358,9 +358,11 @@ def _worker_pids(health: dict) -> list[int]:
 
 
 def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: str = "tick",
-            progress=lambda text: None) -> dict:
+            progress=lambda text: None, wake_ahead_us: float | None = None) -> dict:
     """One session count on a fresh ``burrforce serve``: a row of the results."""
     extra = ["--workers", str(workers)] if workers is not None else []
+    if wake_ahead_us is not None:
+        extra += ["--wake-ahead-us", f"{wake_ahead_us:g}"]
     with tempfile.TemporaryDirectory(prefix="burrforce-bench-sessions-") as tmp:
         progress(f"N = {n}: starting burrforce serve {' '.join(extra)}".rstrip())
         serve = spawn_serve(Path(tmp), "--bone", "phantom:workpiece", "--voxel-mm",
@@ -417,15 +419,17 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
 
 
 def run(counts: list[int], workers: int | None, warmup_s: float, seconds: float,
-        progress=lambda text: None, read: str = "tick") -> dict:
+        progress=lambda text: None, read: str = "tick",
+        wake_ahead_us: float | None = None) -> dict:
     rows = []
     for n in counts:
-        rows.append(run_one(n, workers, warmup_s, seconds, read, progress))
+        rows.append(run_one(n, workers, warmup_s, seconds, read, progress, wake_ahead_us))
         r = rows[-1]
         progress(f"N = {n}: p50 {r['rtt_p50_us'] or 0:.0f} µs, p99 {r['rtt_p99_us'] or 0:.0f} "
                  f"µs, lost {r['lost']}/{r['sent']}, generator {r['generator_cpu_pct']:.0f} %")
     return {"voxel_mm": VOXEL_MM, "warmup_s": warmup_s, "seconds": seconds,
-            "workers_option": workers, "read_option": read, "rows": rows}
+            "workers_option": workers, "read_option": read,
+            "wake_ahead_us_option": wake_ahead_us, "rows": rows}
 
 
 def _f(value: float | None, fmt: str = ".0f") -> str:
@@ -442,7 +446,10 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
     lines = [
         "# Concurrent cutting sessions at 1 kHz (`burrforce bench sessions`)", "",
         f"{stamp}; {result['machine']}. Per session count N: a fresh `burrforce serve` "
-        f"({'--workers ' + str(workers) if workers else 'its default workers'}), N sessions "
+        f"({'--workers ' + str(workers) if workers else 'its default workers'}"
+        + (f", --wake-ahead-us {result['wake_ahead_us_option']:g}"
+           if result.get("wake_ahead_us_option") is not None else "")
+        + "), N sessions "
         f"each on its own workpiece at {result['voxel_mm']:g} mm voxels, cutting at "
         f"α = {ALPHA_DEG:g}°, {DEPTH_MM:g} mm deep, {FEED_MM_S:g} mm/s, {RPM:g} rpm, keyed "
         "POSEs at 1 kHz from one single-threaded load generator (all encoded and signed "
@@ -521,6 +528,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="session counts, comma-separated. Default 1,2,4,8,16")
     p.add_argument("--workers", type=int_at_least(1, "--workers"), default=None,
                    help="passed to `burrforce serve --workers`. Default: serve's default")
+    p.add_argument("--wake-ahead-us", type=float_in(0.0, 5000.0, "--wake-ahead-us", "µs"),
+                   default=None, metavar="US",
+                   help="passed to `burrforce serve --wake-ahead-us` (0: the loops block "
+                        "until each datagram). Default: serve's default")
     p.add_argument("--seconds", type=float_in(0.1, 3600.0, "measured window", "s"),
                    default=10.0, help="measured window per session count, s. Default 10")
     p.add_argument("--warmup-s", type=float_in(0.0, 600.0, "warm-up", "s"), default=1.0,
@@ -540,7 +551,8 @@ def main(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
-    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say, args.read)
+    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say, args.read,
+                 args.wake_ahead_us)
     md, js = write_results(result, args.out)
     print(json.dumps(result["rows"], indent=2) if args.json else md.read_text())
     say(f"results written to {md} and {js}")

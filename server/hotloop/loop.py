@@ -21,6 +21,7 @@ A client changes nothing: it sends to the same port and gets its replies from it
 from __future__ import annotations
 
 import errno
+import os
 import select
 import socket
 import threading
@@ -28,6 +29,7 @@ import time
 
 from .bucket import TokenBucket
 from .dispatch import Dispatcher
+from .wake import DEFAULT_WAKE, WAKE_COUNTERS, WakeAhead, WakeConfig
 from .wire import RX_BYTES
 
 #: Read one byte more than a request may have, so an oversized datagram shows as such (the
@@ -50,8 +52,9 @@ PEER_IDLE_S = 10.0
 #: How often peers are reconciled with the sessions (removed sessions, idle peers), s.
 HOUSEKEEPING_S = 0.5
 #: The loop's own counters (in ``Dispatcher.counters``): times the main socket went unread
-#: for being over budget; peers given a socket; sockets that could not be made.
-LOOP_COUNTERS = ("main_deferred", "peers_adopted", "peer_socket_errors")
+#: for being over budget; peers given a socket; sockets that could not be made; and waking
+#: ahead (``hotloop.wake``, updated every ``HOUSEKEEPING_S``).
+LOOP_COUNTERS = ("main_deferred", "peers_adopted", "peer_socket_errors", *WAKE_COUNTERS)
 
 
 def _bind(host: str, port: int, reuse: bool) -> socket.socket:
@@ -104,6 +107,8 @@ class PeerSockets:
         self.by_fd: dict[int, socket.socket] = {}
         self.by_peer: dict[object, socket.socket] = {}
         self.last_ns: dict[int, int] = {}
+        #: Called with a peer socket's descriptor when it closes.
+        self.on_close = None
 
     def adopt(self, peer: object, now_ns: int) -> None:
         """Give ``peer`` (whose POSE a session just accepted) a socket of its own."""
@@ -130,6 +135,8 @@ class PeerSockets:
     def close(self, fd: int) -> None:
         sock = self.by_fd.pop(fd)
         self.last_ns.pop(fd, None)
+        if self.on_close is not None:
+            self.on_close(fd)
         for peer, s in list(self.by_peer.items()):
             if s is sock:
                 del self.by_peer[peer]
@@ -151,12 +158,39 @@ class PeerSockets:
             self.close(fd)
 
 
+def _poll_ahead(poller: select.epoll, window: tuple[int, int], wake: WakeAhead,
+                clock) -> list:
+    """Wait for events as :class:`WakeAhead` planned: asleep until the window opens (or a
+    datagram comes), then polling without sleeping until a datagram comes or it closes."""
+    start, end = window
+    now = clock()
+    if start > now:
+        # epoll_wait's timeout is whole milliseconds; select's on the epoll descriptor is µs.
+        ready = select.select((poller,), (), (), (start - now) * 1e-9)[0]
+        wake.woke(clock())
+        if ready:
+            return poller.poll(0)
+    t0 = clock()
+    yield_cpu = os.sched_yield
+    while True:
+        events = poller.poll(0)
+        t = clock()
+        if events or t >= end:
+            break
+        # A client on this core (the engine beside the server) runs first: polling must not
+        # delay the very packet it waits for.
+        yield_cpu()
+    wake.polled(t0, t, bool(events))
+    return events
+
+
 def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
-          stopping: threading.Event) -> None:
+          stopping: threading.Event, wake_config: WakeConfig = DEFAULT_WAKE) -> None:
     """Answer datagrams until ``stopping`` is set and the socket is shut down.
 
     ``lock`` is held while a datagram is handled, so commands (another thread) change
-    sessions between packets, never during one.
+    sessions between packets, never during one. ``wake_config``: whether and how far the
+    loop wakes ahead of its peers' predicted packets (``hotloop.wake``).
     """
     poller = select.epoll()
     main_fd = sock.fileno()
@@ -168,6 +202,9 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     by_fd = peers.by_fd
     last_ns = peers.last_ns
     clock = time.monotonic_ns
+    wake = WakeAhead(wake_config, clock()) if wake_config.enabled else None
+    if wake is not None:
+        peers.on_close = wake.forget
     # Datagrams are received into the dispatcher's own buffer, and replies are slices of
     # its reply buffer: no bytes object per packet either way.
     handle = dispatcher.handle_received
@@ -178,13 +215,18 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     wait_s = -1.0
     try:
         while True:
+            # Not while the main socket is deferred (a flood): its budget's timer decides.
+            window = wake.next_poll(clock()) if wake is not None and wait_s < 0.0 else None
             try:
-                events = poller.poll(wait_s)
+                events = (poller.poll(wait_s) if window is None
+                          else _poll_ahead(poller, window, wake, clock))
             except InterruptedError:
                 continue
             if stopping.is_set():
                 return
             now = clock()
+            if window is None and wake is not None:
+                wake.woke(now)
             wait_s = -1.0
             main_ready = False
             for fd, _mask in events:
@@ -204,6 +246,8 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                 with lock:
                     out = handle(n, t_recv)
                 last_ns[fd] = t_recv
+                if wake is not None:
+                    wake.arrived(fd, t_recv)
                 if out is not None:
                     try:
                         peer_sock.send(out)
@@ -249,6 +293,8 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
             if now - housekeeping_ns > HOUSEKEEPING_S * 1e9:
                 housekeeping_ns = now
                 peers.housekeeping(now)
+                if wake is not None:
+                    wake.count_into(counters)
     finally:
         peers.close_all()
         poller.close()

@@ -37,6 +37,7 @@ from .dispatch import Dispatcher
 from .loop import LOOP_COUNTERS, open_socket, serve
 from .session import Session, SessionConfig
 from .telemetry import TelemetrySlot
+from .wake import DEFAULT_WAKE, WakeConfig
 
 PHANTOM_PREFIX = "phantom:"
 #: The bone ``burrforce serve`` loads when none is named.
@@ -124,11 +125,13 @@ def bone_info(session: Session) -> dict:
 
 @dataclass(frozen=True)
 class HotLoopConfig:
-    """Where the hot loop listens and the sessions it starts with."""
+    """Where the hot loop listens, the sessions it starts with, and whether it wakes ahead of
+    its streams' packets (``hotloop.wake``)."""
 
     host: str = "127.0.0.1"
     udp_port: int = 0
     sessions: tuple[SessionSpec, ...] = ()
+    wake: WakeConfig = DEFAULT_WAKE
 
 
 def usable_cores(cpu_max: str = "/sys/fs/cgroup/cpu.max") -> int:
@@ -182,10 +185,11 @@ def check_ports_free(host: str, udp_port: int, workers: int) -> None:
 
 
 def start_pool(host: str, udp_port: int, workers: int,
-               timeout_s: float = START_TIMEOUT_S) -> list[HotLoopProcess]:
+               timeout_s: float = START_TIMEOUT_S,
+               wake: WakeConfig = DEFAULT_WAKE) -> list[HotLoopProcess]:
     """Start ``workers`` hot loops with no sessions, worker i on ``udp_port + i`` (or an
-    ephemeral port each when ``udp_port`` is 0). The interpreters start and warm up side by
-    side, not one after the other.
+    ephemeral port each when ``udp_port`` is 0), each waking ahead as ``wake`` says. The
+    interpreters start and warm up side by side, not one after the other.
 
     Raises:
         ValueError: ``workers`` < 1.
@@ -194,7 +198,7 @@ def start_pool(host: str, udp_port: int, workers: int,
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     check_ports_free(host, udp_port, workers)
-    pool = [HotLoopProcess(HotLoopConfig(host, port, ()))
+    pool = [HotLoopProcess(HotLoopConfig(host, port, (), wake))
             for port in worker_ports(udp_port, workers)]
     errors: list[str] = []
 
@@ -508,7 +512,7 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     if beat is not None:
         threading.Thread(target=_heartbeat, args=(beat, lock, stopping),
                          name="burrforce-heartbeat", daemon=True).start()
-    serve(sock, dispatcher, lock, stopping)
+    serve(sock, dispatcher, lock, stopping, config.wake)
     sock.close()
     commands.join(5.0)
 

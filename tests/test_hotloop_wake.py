@@ -1,0 +1,176 @@
+"""Waking ahead of a stream's packets (``hotloop.wake``): the prediction, the polling window,
+the CPU budget, on synthetic clocks; then a real hot loop on loopback that polls for a 1 kHz
+stream and answers every packet, and one that does not."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from burrforce.client.udp import BurrClient
+from burrforce.proto.tag import new_key
+from burrforce.server.hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+from burrforce.server.hotloop.wake import (
+    BUDGET_CAP_S,
+    PERIOD_MAX_S,
+    WakeAhead,
+    WakeConfig,
+)
+
+MS = 1_000_000  # ns
+
+
+def _streamed(wake: WakeAhead, key: object, start_ns: int, period_ns: int, n: int) -> int:
+    """``n`` arrivals of ``key`` every ``period_ns`` from ``start_ns``, each waking the loop
+    from sleep; the last one's time."""
+    t = start_ns
+    for i in range(n):
+        t = start_ns + i * period_ns
+        wake.woke(t)
+        wake.arrived(key, t)
+    return t
+
+
+def test_a_steady_stream_gets_a_window_around_its_next_packet():
+    wake = WakeAhead(WakeConfig(lead_us=250.0, cpu_share=0.4), 0)
+    assert wake.next_poll(0) is None  # nothing predicted yet
+    last = _streamed(wake, "a", 10 * MS, MS, 20)
+    window = wake.next_poll(last + 100_000)
+    assert window == (last + MS - 250_000, last + MS + 250_000)
+
+
+def test_the_earliest_stream_decides_and_a_window_that_passed_is_dropped():
+    wake = WakeAhead(WakeConfig(lead_us=200.0, cpu_share=1.0), 0)
+    a = _streamed(wake, "a", 10 * MS, MS, 10)
+    b = _streamed(wake, "b", 10 * MS + 400_000, MS, 10)
+    assert wake.next_poll(b + 1000) == (a + MS - 200_000, a + MS + 200_000)
+    # a's packet never came: past its window, b's is next, and a counts as missed.
+    assert wake.next_poll(a + MS + 200_001) == (b + MS - 200_000, b + MS + 200_000)
+    assert wake.missed == 1
+    wake.forget("b")
+    assert wake.next_poll(a + MS + 200_002) is None
+
+
+def test_a_pause_or_a_burst_is_not_a_period():
+    wake = WakeAhead(WakeConfig(), 0)
+    last = _streamed(wake, "a", 0, MS, 5)
+    wake.arrived("a", last + int(PERIOD_MAX_S * 1e9) + 1)  # a pause
+    assert wake.next_poll(last + int(PERIOD_MAX_S * 1e9) + 2) is None
+    t = last + int(PERIOD_MAX_S * 1e9) + 1
+    wake.arrived("a", t + 50_000)  # a burst: 50 µs apart
+    assert wake.next_poll(t + 60_000) is None
+
+
+def test_the_period_follows_the_stream():
+    wake = WakeAhead(WakeConfig(lead_us=100.0, cpu_share=1.0), 0)
+    last = _streamed(wake, "a", 0, MS, 50)
+    last = _streamed(wake, "a", last + 2 * MS, 2 * MS, 60)  # now 500 Hz
+    start, end = wake.next_poll(last)
+    assert abs((start + end) // 2 - (last + 2 * MS)) < 1000
+
+
+def test_a_loop_awake_beyond_its_share_stops_polling_until_it_has_slept():
+    wake = WakeAhead(WakeConfig(lead_us=300.0, cpu_share=0.4), 0)
+    t = _streamed(wake, "a", 0, MS, 5)
+    wake.woke(t)
+    # Awake (working) for 30 packets straight: far more than 40 % of the time.
+    for _ in range(30):
+        t += MS
+        wake.arrived("a", t)
+    assert wake.next_poll(t + 1000) is None
+    assert wake.starved == 1
+    # Then asleep for 60 ms: the budget is back.
+    wake.woke(t + 60 * MS)
+    t = _streamed(wake, "a", t + 60 * MS, MS, 2)
+    assert wake.next_poll(t + 1000) == (t + MS - 300_000, t + MS + 300_000)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from("abc"), st.integers(1, 3 * MS),
+                          st.integers(0, 2 * MS)), min_size=1, max_size=200),
+       st.floats(0.0, 5000.0), st.floats(0.01, 1.0))
+def test_windows_lie_around_a_predicted_packet_and_the_budget_stays_capped(events, lead_us,
+                                                                           share):
+    """Any arrivals, any awake spans: a window is (due − lead, due + lead) of a stream's
+    prediction, never already over, and the budget never exceeds its cap."""
+    wake = WakeAhead(WakeConfig(lead_us, share), 0)
+    now = 0
+    for key, gap, awake in events:
+        now += gap
+        wake.arrived(key, now)
+        window = wake.next_poll(now + awake)
+        if window is not None:
+            start, end = window
+            assert end - start == 2 * wake.lead_ns
+            assert end > now + awake
+            assert (start + end) // 2 in wake._due.values()
+        assert wake._budget_ns <= BUDGET_CAP_S * 1e9
+        wake.woke(now + awake)
+
+
+@pytest.mark.parametrize("lead, share, words", [
+    (-1.0, 0.4, "lead must be within [0, 5000]"),
+    (float("nan"), 0.4, "lead must be within"),
+    (6000.0, 0.4, "lead must be within"),
+    (300.0, 0.0, "CPU share must be within [0.01, 1]"),
+    (300.0, 1.5, "CPU share must be within"),
+    (300.0, float("inf"), "CPU share must be within"),
+])
+def test_bad_settings_say_what_is_wrong(lead, share, words):
+    with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        WakeConfig(lead, share)
+
+
+# -- a real hot loop -----------------------------------------------------------------------
+
+SID = 3
+PACKETS = 600
+
+
+def _stream_at_1khz(address, key: bytes) -> int:
+    """PACKETS exchanges at 1 kHz through the client (a peer socket of its own after the
+    first); how many were answered."""
+    answered = 0
+    with BurrClient(*address, session=SID, key=key, timeout_s=0.5) as client:
+        due = time.perf_counter()
+        for _ in range(PACKETS):
+            due += 0.001  # sleep most of the way, spin the rest: a steady 1 kHz, as a device
+            ahead = due - time.perf_counter()
+            if ahead > 0.0006:
+                time.sleep(ahead - 0.0004)
+            while time.perf_counter() < due:
+                pass
+            try:
+                client.exchange((30.0, 30.0, 60.0), rpm=0.0)
+            except TimeoutError:
+                continue
+            answered += 1
+    return answered
+
+
+@pytest.mark.parametrize("lead_us", [250.0, 0.0])
+def test_a_hot_loop_answers_a_1khz_stream_polling_for_it_or_not(lead_us):
+    key = new_key()
+    spec = SessionSpec(SID, "phantom:workpiece", 0.5, key, SessionConfig())
+    hot = HotLoopProcess(HotLoopConfig(sessions=(spec,), wake=WakeConfig(lead_us=lead_us)))
+    address = hot.start()
+    try:
+        answered = _stream_at_1khz(address, key)
+        time.sleep(0.6)  # the loop copies its wake counters twice a second
+        counters = hot.stats()["counters"]
+    finally:
+        hot.stop()
+    assert answered == PACKETS
+    assert counters["replied"] >= PACKETS
+    if lead_us:
+        # It predicted the stream and caught most packets polling (the first few set the
+        # period; a machine busy elsewhere may delay some past their window).
+        assert counters["wake_caught"] > PACKETS // 2, {k: v for k, v in counters.items()
+                                                    if k.startswith("wake")}
+        assert counters["wake_spin_ms"] > 0
+    else:
+        assert not any(counters[k] for k in ("wake_caught", "wake_missed", "wake_starved",
+                                              "wake_spin_ms")), counters
