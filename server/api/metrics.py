@@ -148,16 +148,17 @@ class LoopStats:
                 packets.add_metric([name], value)
         yield packets
         wake = CounterMetricFamily(
-            "burrforce_wake_ahead", "The hot loops' polling windows ahead of a stream's "
-            "predicted datagram, by how they ended: caught (it came while polling), missed "
-            "(it did not), starved (not polled: the loop had spent its CPU share)",
-            labels=["outcome"])
-        for outcome in ("caught", "missed", "starved"):
-            wake.add_metric([outcome], counters.get(f"wake_{outcome}", 0))
+            "burrforce_wake_ahead", "The hot loops' waking ahead of predicted datagrams: "
+            "caught (a datagram came while polling), missed (a prediction passed without its "
+            "datagram), starved / busy / quiet (the loop blocked instead of polling: its CPU "
+            "share was spent / every core was taken / it was backing off), preempted (a poll "
+            "cut short by a task holding the core)", labels=["event"])
+        for event in ("caught", "missed", "starved", "busy", "quiet", "preempted"):
+            wake.add_metric([event], counters.get(f"wake_{event}", 0))
         yield wake
         yield CounterMetricFamily(
             "burrforce_wake_poll_seconds", "Time the hot loops spent polling for predicted "
-            "datagrams", value=counters.get("wake_spin_ms", 0) / 1000.0)
+            "datagrams", value=counters.get("wake_poll_ms", 0) / 1000.0)
         hist = HistogramMetricFamily(
             "burrforce_tick_seconds", "Time of the bone stage (carve + force + shaft) per "
             "tick", labels=["session"])

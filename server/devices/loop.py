@@ -174,7 +174,8 @@ class DeviceLoop:
             self.say(f"actuator: {c.actuator}")
         self.renderer = CouplingRenderer(info.limits, c.workspace.scale, c.stale_s,
                                          passivity=c.passivity)
-        self.renderer.warm_up()
+        self.renderer.warm_up()  # compiles or loads kernels: where a finalizer may run
+        self._check_stop()
         self.device.cycle(np.zeros(3))  # the back-end's kernels load before the first period
         self.transform = Transform(frame(c.frame), c.placement_position,
                                    c.placement_orientation)

@@ -47,13 +47,15 @@ MAIN_BUDGET_HZ = 5_000.0
 MAIN_BURST = 500.0
 #: Peers with a socket of their own, at most (the least recently active goes first).
 MAX_PEERS = 64
+#: select()'s descriptor limit (glibc's FD_SETSIZE).
+FD_SETSIZE = 1024
 #: A peer socket silent this long is closed (its client went away), s.
 PEER_IDLE_S = 10.0
 #: How often peers are reconciled with the sessions (removed sessions, idle peers), s.
 HOUSEKEEPING_S = 0.5
 #: The loop's own counters (in ``Dispatcher.counters``): times the main socket went unread
 #: for being over budget; peers given a socket; sockets that could not be made; and waking
-#: ahead (``hotloop.wake``, updated every ``HOUSEKEEPING_S``).
+#: ahead (``hotloop.wake``).
 LOOP_COUNTERS = ("main_deferred", "peers_adopted", "peer_socket_errors", *WAKE_COUNTERS)
 
 
@@ -161,7 +163,8 @@ class PeerSockets:
 def _poll_ahead(poller: select.epoll, window: tuple[int, int], wake: WakeAhead,
                 clock) -> list:
     """Wait for events as :class:`WakeAhead` planned: asleep until the window opens (or a
-    datagram comes), then polling without sleeping until a datagram comes or it closes."""
+    datagram comes), then polling without sleeping until a datagram comes, the window
+    closes, or another task turns out to hold the core (``hotloop.wake``)."""
     start, end = window
     now = clock()
     if start > now:
@@ -172,14 +175,21 @@ def _poll_ahead(poller: select.epoll, window: tuple[int, int], wake: WakeAhead,
             return poller.poll(0)
     t0 = clock()
     yield_cpu = os.sched_yield
+    held_ns = wake.lead_ns
     while True:
         events = poller.poll(0)
         t = clock()
         if events or t >= end:
             break
-        # A client on this core (the engine beside the server) runs first: polling must not
+        # A client on this core (the engine beside the server) sends first: the poll must not
         # delay the very packet it waits for.
         yield_cpu()
+        back = clock()
+        if back - t > held_ns:  # a task that does not block held the core: stop polling
+            wake.preempted(back)
+            events = poller.poll(0)
+            t = back
+            break
     wake.polled(t0, t, bool(events))
     return events
 
@@ -202,7 +212,10 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     by_fd = peers.by_fd
     last_ns = peers.last_ns
     clock = time.monotonic_ns
-    wake = WakeAhead(wake_config, clock()) if wake_config.enabled else None
+    # select() takes descriptors below FD_SETSIZE only: a loop whose epoll lies beyond
+    # (a process with over a thousand files open) blocks as before.
+    wake = (WakeAhead(wake_config, clock(), counters, os.cpu_count() or 1)
+            if wake_config.enabled and poller.fileno() < FD_SETSIZE else None)
     if wake is not None:
         peers.on_close = wake.forget
     # Datagrams are received into the dispatcher's own buffer, and replies are slices of
@@ -293,8 +306,6 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
             if now - housekeeping_ns > HOUSEKEEPING_S * 1e9:
                 housekeeping_ns = now
                 peers.housekeeping(now)
-                if wake is not None:
-                    wake.count_into(counters)
     finally:
         peers.close_all()
         poller.close()

@@ -7,28 +7,40 @@ arrival is predictable: the loop sleeps (with a microsecond timeout) until ``lea
 it, then polls without sleeping until it comes or ``lead_us`` after it. A datagram that arrives
 while the loop polls is read within a microsecond or two. Measured with a bare echo paced at
 1 kHz on that machine (one run each): p50 93–95 µs blocking, 35 µs waking 300 µs ahead (p99
-132 µs against 207–221 µs).
+132 µs against 207–221 µs; 150 µs ahead: p99 302 µs, the timer's own wake-up being late).
 
-The price is the polling: about ``lead_us`` per packet, 30 % of a core for one 1 kHz stream at
-the default lead. ``cpu_share`` caps the loop's whole time awake, its work included: awake time
-is earned at that share of wall time (a token bucket holding at most ``BUDGET_CAP_S``), and
-without budget the loop blocks as before. So a loop with one or two streams polls for them,
-and a loop whose streams keep it busy polls less and less, down to not at all: polling only
-takes what the loop's own work leaves of its share, and the pool's other workers, the control
-plane and the engine beside it keep the rest of the cores.
+Polling takes a core that others may need, so the loop polls only when that costs nobody:
+
+- **Its CPU share.** ``cpu_share`` caps the loop's whole time awake, its work included: awake
+  time is earned at that share of wall time (a token bucket holding at most
+  ``BUDGET_CAP_S``). A loop with one stream polls for it (its tick plus about ``lead_us``
+  per packet at 1 kHz); a loop whose streams keep it busy polls less and less, down to not
+  at all.
+- **Idle cores.** A window opens only while fewer other tasks are runnable than there are
+  cores (``/proc/loadavg``'s running count): on a machine whose cores are all taken, by the
+  pool's other workers, the engine, a load generator, the loop blocks as before.
+- **Sharing its core.** While polling, the loop yields the core at each pass, so a client on
+  the same core (an engine beside the server) sends its packet instead of waiting behind the
+  poll. A yield that comes back later than ``lead_us`` means a task that does not block (a
+  CPU-bound thread of the engine) holds the core: blocked, the loop would have preempted it
+  when the datagram came (its priority is higher); polling, it waits for that task's slice.
+  Measured with such a task on the loop's core: p99 4.2 ms polling against 0.4 ms blocking.
+  So the loop stops polling for ``BACKOFF_S``, doubling up to ``BACKOFF_MAX_S`` while it
+  keeps happening: one slow packet per back-off at most.
 """
 
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 
 #: How far ahead of a stream's predicted packet the loop starts polling, µs. The timer's own
-#: wake-up is late by tens of µs on a VM; 300 µs covers it nearly always (150 µs: p99 302 µs
-#: against 132 µs in the echo measurement above).
+#: wake-up is late by ~80–100 µs on this machine, so polling starts ~150 µs ahead.
 DEFAULT_LEAD_US = 250.0
-#: The share of one core the loop may spend awake (working or polling) before it stops
-#: polling, averaged over the budget's window.
+#: The share of one core the loop may spend awake (working or polling) and still poll,
+#: averaged over the budget's window.
 DEFAULT_CPU_SHARE = 0.4
 #: The polling budget holds at most this much, s: a quiet spell cannot save up for a long run
 #: of polling later.
@@ -38,10 +50,16 @@ PERIOD_MIN_S = 0.0002
 PERIOD_MAX_S = 0.02
 #: Weight of a new interval in a stream's period (exponential average).
 PERIOD_ALPHA = 0.125
-
-
-#: Counter names :meth:`WakeAhead.count_into` writes.
-WAKE_COUNTERS = ("wake_caught", "wake_missed", "wake_starved", "wake_spin_ms")
+#: After a task held the loop's core through a yield: no polling for this long, s, doubling
+#: while it happens again at each try, up to BACKOFF_MAX_S.
+BACKOFF_S = 1.0
+BACKOFF_MAX_S = 16.0
+#: Counter names, in the dispatcher's counters: windows that caught a datagram; predictions
+#: whose time passed without their datagram; times the loop blocked instead of polling for
+#: want of CPU share, because every core was taken, or while backing off; polls cut short by
+#: a task holding the core; ms polled.
+WAKE_COUNTERS = ("wake_caught", "wake_missed", "wake_starved", "wake_busy", "wake_quiet",
+                 "wake_preempted", "wake_poll_ms")
 
 
 @dataclass(frozen=True)
@@ -74,29 +92,69 @@ class WakeConfig:
 DEFAULT_WAKE = WakeConfig()
 
 
+class RunnableTasks:
+    """Tasks runnable on the whole machine right now (``/proc/loadavg``'s running count, this
+    one included), read without allocating a file object; None where there is no procfs."""
+
+    def __init__(self, path: str = "/proc/loadavg") -> None:
+        try:
+            self._fd: int | None = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            self._fd = None
+
+    def __call__(self) -> int | None:
+        if self._fd is None:
+            return None
+        try:
+            text = os.pread(self._fd, 128, 0)  # "0.52 0.58 0.59 2/345 6789\n"
+            slash = text.index(b"/")
+            return int(text[text.rindex(b" ", 0, slash) + 1:slash])
+        except (OSError, ValueError):
+            return None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
 class WakeAhead:
-    """Per-stream arrival prediction and the polling budget (one per loop; not thread-safe).
+    """Per-stream arrival prediction and when polling is allowed (one per loop; not
+    thread-safe).
+
+    Args:
+        config: the lead and the CPU share.
+        now_ns: monotonic ns.
+        counters: where ``WAKE_COUNTERS`` are kept (the dispatcher's, read by ``stats``).
+        cores: the machine's CPUs (``/proc/loadavg`` counts the whole machine's tasks, a
+            container's too, so its quota is not the measure here).
+        runnable: the machine's runnable tasks, this loop included (None: unknown, which
+            never stops polling); default :class:`RunnableTasks`.
 
     Streams are keyed by anything hashable (the loop uses a peer socket's descriptor).
     """
 
-    def __init__(self, config: WakeConfig, now_ns: int) -> None:
+    def __init__(self, config: WakeConfig, now_ns: int, counters: dict[str, int],
+                 cores: int, runnable: Callable[[], int | None] | None = None) -> None:
         self.lead_ns = int(config.lead_us * 1000)
         self.share = float(config.cpu_share)
         self.cap_ns = int(BUDGET_CAP_S * 1e9)
+        self.cores = max(1, int(cores))
+        self.runnable = RunnableTasks() if runnable is None else runnable
+        self.counters = counters
+        for name in WAKE_COUNTERS:
+            counters.setdefault(name, 0)
         self._budget_ns = 0
         self._budget_t = now_ns
         self._awake_since = now_ns
+        self._poll_ns = 0
+        self._quiet_until = now_ns
+        self._backoff_ns = int(BACKOFF_S * 1e9)
+        self._preempted_at = now_ns - int(BACKOFF_MAX_S * 1e9) * 4
         self._last: dict[object, int] = {}
         self._period: dict[object, float] = {}
-        #: Each stream's predicted next arrival, ns; absent once it was polled for in vain.
+        #: Each stream's predicted next arrival, ns; absent once its time passed.
         self._due: dict[object, int] = {}
-        #: Counters: polls that caught their packet, polls in vain, ns spent polling, and
-        #: predictions skipped for want of budget.
-        self.caught = 0
-        self.missed = 0
-        self.spin_ns = 0
-        self.starved = 0
 
     def arrived(self, key: object, t_ns: int) -> None:
         """A datagram of stream ``key`` arrived at ``t_ns`` (monotonic)."""
@@ -124,10 +182,10 @@ class WakeAhead:
         self._awake_since = t_ns
 
     def next_poll(self, now_ns: int) -> tuple[int, int] | None:
-        """(start, end) of the next polling window, monotonic ns, or None: no stream is
-        predicted, or the loop's share of the core is spent; block until a datagram arrives.
-        A window whose end has passed is dropped (its packet is late: the loop blocks for it).
-        Charges the time awake since the last call (or since :meth:`woke`) to the budget."""
+        """(start, end) of the next polling window, monotonic ns, or None: block until a
+        datagram arrives (no stream is predicted, the loop's share is spent, every core is
+        taken, or it is backing off). A prediction whose window has passed is dropped. Charges
+        the time awake since the last call (or since :meth:`woke`) to the budget."""
         self._budget_ns -= now_ns - self._awake_since
         self._awake_since = now_ns
         self._budget_ns = min(self.cap_ns,
@@ -140,26 +198,38 @@ class WakeAhead:
         for key, due in list(self._due.items()):
             if due + lead <= now_ns:
                 del self._due[key]
-                self.missed += 1
+                self.counters["wake_missed"] += 1
             elif best is None or due < best:
                 best = due
         if best is None:
             return None
+        if now_ns < self._quiet_until:
+            self.counters["wake_quiet"] += 1
+            return None
         if self._budget_ns <= 0:
-            self.starved += 1
+            self.counters["wake_starved"] += 1
+            return None
+        running = self.runnable()
+        if running is not None and running - 1 >= self.cores:
+            self.counters["wake_busy"] += 1
             return None
         return best - lead, best + lead
 
     def polled(self, start_ns: int, end_ns: int, caught: bool) -> None:
         """The loop polled from ``start_ns`` to ``end_ns`` (charged with the rest of its time
         awake); whether a datagram came."""
-        self.spin_ns += max(0, end_ns - start_ns)
+        self._poll_ns += max(0, end_ns - start_ns)
+        self.counters["wake_poll_ms"] = self._poll_ns // 1_000_000
         if caught:
-            self.caught += 1
+            self.counters["wake_caught"] += 1
 
-    def count_into(self, counters: dict[str, int]) -> None:
-        """Write the counters (``WAKE_COUNTERS``) into ``counters``."""
-        counters["wake_caught"] = self.caught
-        counters["wake_missed"] = self.missed
-        counters["wake_starved"] = self.starved
-        counters["wake_spin_ms"] = self.spin_ns // 1_000_000
+    def preempted(self, now_ns: int) -> None:
+        """A yield came back more than the lead later: another task holds this core. No
+        polling for the back-off, which doubles each time this recurs within twice the
+        back-off and starts again from BACKOFF_S after a longer quiet spell."""
+        self.counters["wake_preempted"] += 1
+        if now_ns - self._preempted_at > 2 * self._backoff_ns:
+            self._backoff_ns = int(BACKOFF_S * 1e9)
+        self._preempted_at = now_ns
+        self._quiet_until = now_ns + self._backoff_ns
+        self._backoff_ns = min(2 * self._backoff_ns, int(BACKOFF_MAX_S * 1e9))
