@@ -18,6 +18,7 @@ from burrforce.server.hotloop.wake import (
     BACKOFF_S,
     BUDGET_CAP_S,
     PERIOD_MAX_S,
+    PREEMPT_BURST,
     WAKE_COUNTERS,
     RunnableTasks,
     WakeAhead,
@@ -112,27 +113,42 @@ def test_no_polling_while_every_core_is_taken():
     assert unknown.next_poll(t + 1000) is not None  # no procfs: the share alone decides
 
 
+def _quiet_s(wake: WakeAhead, t: int) -> tuple[int, int]:
+    """Stream at 1 kHz until the loop polls again; (seconds it did not, the time then)."""
+    start = t
+    while True:
+        t = _streamed(wake, "a", t + MS, MS, 2)
+        if wake.next_poll(t + 1000) is not None:
+            return round((t - start) / S), t
+
+
 def test_a_task_holding_the_core_stops_polling_for_a_growing_while():
     wake = _wake(share=1.0)
     t = _streamed(wake, "a", 0, MS, 20)
+    wake.preempted(t)  # a task that ran once or twice: only those windows end
     wake.preempted(t)
-    quiet = []
-    for _ in range(6):  # it keeps happening at every try
-        start = t
-        while True:
-            t = _streamed(wake, "a", t + MS, MS, 2)
-            if wake.next_poll(t + 1000) is not None:
-                break
-        quiet.append(round((t - start) / S))
-        wake.preempted(t)
-    assert quiet == [1, 2, 4, 8, 16, 16]
-    assert wake.counters["wake_preempted"] == 7
+    assert wake.next_poll(t + 1000) is not None
+    wake.preempted(t)  # it keeps happening: back off
+    quiet, t = _quiet_s(wake, t)
+    backoffs = [quiet]
+    slow = []
+    for _ in range(5):  # it holds the core at every try: a few windows, then a longer pause
+        n = 0
+        while wake.next_poll(t + 1000) is not None:
+            wake.preempted(t)
+            n += 1
+            t = _streamed(wake, "a", t + MS, MS, 1)
+        slow.append(n)
+        quiet, t = _quiet_s(wake, t)
+        backoffs.append(quiet)
+    assert backoffs == [1, 2, 4, 8, 16, 16]
+    assert all(1 <= n <= 1 + PREEMPT_BURST for n in slow), slow
+    assert wake.counters["wake_quiet"] > 20_000  # one a call while quiet
     # After a quiet spell longer than twice the back-off, it starts again from BACKOFF_S.
     t = _streamed(wake, "a", t + int(3 * BACKOFF_MAX_S * S), MS, 2)
-    assert wake.next_poll(t + 1000) is not None
-    wake.preempted(t)
-    t2 = _streamed(wake, "a", t + int(BACKOFF_S * S) + MS, MS, 2)
-    assert wake.next_poll(t2 + 1000) is not None
+    for _ in range(3):
+        wake.preempted(t)
+    assert _quiet_s(wake, t)[0] == BACKOFF_S
 
 
 def test_the_counters_are_kept_in_the_given_dict():

@@ -15,7 +15,7 @@ TOML (``burrforce serve --config FILE``)::
     max_sessions = 16           # sessions held at once (each keeps its bone in memory)
     workers = 3                 # hot-loop processes, worker i on udp_port + i (serve's
                                 # default: one per core less one)
-    wake_ahead_us = 300         # poll from this long before a stream's next packet; 0: off
+    wake_ahead_us = 250         # poll from this long before a stream's next packet; 0: off
     wake_cpu_share = 0.4        # ...while a loop is awake less than this share of a core
 
     [session]                   # the default session serve starts with

@@ -25,8 +25,10 @@ Polling takes a core that others may need, so the loop polls only when that cost
   CPU-bound thread of the engine) holds the core: blocked, the loop would have preempted it
   when the datagram came (its priority is higher); polling, it waits for that task's slice.
   Measured with such a task on the loop's core: p99 4.2 ms polling against 0.4 ms blocking.
-  So the loop stops polling for ``BACKOFF_S``, doubling up to ``BACKOFF_MAX_S`` while it
-  keeps happening: one slow packet per back-off at most.
+  A task that took the core once (a telemetry reader, a compiler) ends that one window;
+  when it keeps happening (more than ``PREEMPT_ALLOWANCE_HZ``), the loop stops polling for
+  ``BACKOFF_S``, doubling up to ``BACKOFF_MAX_S`` while it goes on: about one slow packet
+  per back-off.
 """
 
 from __future__ import annotations
@@ -54,6 +56,10 @@ PERIOD_ALPHA = 0.125
 #: while it happens again at each try, up to BACKOFF_MAX_S.
 BACKOFF_S = 1.0
 BACKOFF_MAX_S = 16.0
+#: Preemptions that only end their window: this many a second on average, in bursts of
+#: PREEMPT_BURST; more start the back-off.
+PREEMPT_ALLOWANCE_HZ = 1.0
+PREEMPT_BURST = 2.0
 #: Counter names, in the dispatcher's counters: windows that caught a datagram; predictions
 #: whose time passed without their datagram; times the loop blocked instead of polling for
 #: want of CPU share, because every core was taken, or while backing off; polls cut short by
@@ -151,6 +157,8 @@ class WakeAhead:
         self._quiet_until = now_ns
         self._backoff_ns = int(BACKOFF_S * 1e9)
         self._preempted_at = now_ns - int(BACKOFF_MAX_S * 1e9) * 4
+        self._allowance = PREEMPT_BURST
+        self._allowance_t = now_ns
         self._last: dict[object, int] = {}
         self._period: dict[object, float] = {}
         #: Each stream's predicted next arrival, ns; absent once its time passed.
@@ -224,10 +232,18 @@ class WakeAhead:
             self.counters["wake_caught"] += 1
 
     def preempted(self, now_ns: int) -> None:
-        """A yield came back more than the lead later: another task holds this core. No
-        polling for the back-off, which doubles each time this recurs within twice the
-        back-off and starts again from BACKOFF_S after a longer quiet spell."""
+        """A yield came back more than the lead later: another task holds this core. Once in
+        a while (``PREEMPT_ALLOWANCE_HZ``) this only ends the window: a task that ran once
+        (a telemetry reader, a compiler) costs one packet. Beyond it, no polling for the
+        back-off, which doubles each time this recurs within twice the back-off and starts
+        again from BACKOFF_S after a longer quiet spell."""
         self.counters["wake_preempted"] += 1
+        self._allowance = min(PREEMPT_BURST, self._allowance + PREEMPT_ALLOWANCE_HZ
+                              * (now_ns - self._allowance_t) * 1e-9)
+        self._allowance_t = now_ns
+        if self._allowance >= 1.0:
+            self._allowance -= 1.0
+            return
         if now_ns - self._preempted_at > 2 * self._backoff_ns:
             self._backoff_ns = int(BACKOFF_S * 1e9)
         self._preempted_at = now_ns
