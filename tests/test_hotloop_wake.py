@@ -257,9 +257,9 @@ def test_a_hot_loop_answers_a_1khz_stream_polling_for_it_or_not(lead_us):
     wake = {k: counters[k] for k in WAKE_COUNTERS}
     if lead_us:
         # It predicted the stream: each packet after the first few was polled for, or not
-        # for a reason it counted (a machine busy elsewhere takes cores and delays packets),
-        # and some were caught polling.
-        assert wake["wake_caught"] > 0, wake
+        # for a reason it counted. Some were caught polling, unless every core was taken
+        # the whole time (another suite beside this one): then it rightly never polled.
+        assert wake["wake_caught"] > 0 or wake["wake_busy"] > PACKETS // 2, wake
         assert sum(wake[k] for k in WAKE_COUNTERS if k != "wake_poll_ms") > PACKETS // 2, wake
     else:
         assert not any(wake.values()), wake

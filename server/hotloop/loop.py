@@ -26,6 +26,7 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 
 from .bucket import TokenBucket
 from .dispatch import Dispatcher
@@ -110,7 +111,7 @@ class PeerSockets:
         self.by_peer: dict[object, socket.socket] = {}
         self.last_ns: dict[int, int] = {}
         #: Called with a peer socket's descriptor when it closes.
-        self.on_close = None
+        self.on_close: Callable[[int], None] | None = None
 
     def adopt(self, peer: object, now_ns: int) -> None:
         """Give ``peer`` (whose POSE a session just accepted) a socket of its own."""
@@ -309,3 +310,5 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
     finally:
         peers.close_all()
         poller.close()
+        if wake is not None:
+            wake.close()

@@ -100,9 +100,12 @@ DEFAULT_WAKE = WakeConfig()
 
 class RunnableTasks:
     """Tasks runnable on the whole machine right now (``/proc/loadavg``'s running count, this
-    one included), read without allocating a file object; None where there is no procfs."""
+    one included), read into a buffer of its own (no file object, no bytes per call); None
+    where there is no procfs."""
 
     def __init__(self, path: str = "/proc/loadavg") -> None:
+        self._buf = bytearray(128)
+        self._view = memoryview(self._buf)
         try:
             self._fd: int | None = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
         except OSError:
@@ -112,11 +115,19 @@ class RunnableTasks:
         if self._fd is None:
             return None
         try:
-            text = os.pread(self._fd, 128, 0)  # "0.52 0.58 0.59 2/345 6789\n"
-            slash = text.index(b"/")
-            return int(text[text.rindex(b" ", 0, slash) + 1:slash])
-        except (OSError, ValueError):
+            n = os.preadv(self._fd, (self._view,), 0)  # "0.52 0.58 0.59 2/345 6789\n"
+        except OSError:
             return None
+        buf = self._buf
+        slash = buf.find(b"/", 0, n)
+        i = slash - 1
+        value = 0
+        scale = 1
+        while i >= 0 and 48 <= buf[i] <= 57:
+            value += (buf[i] - 48) * scale
+            scale *= 10
+            i -= 1
+        return value if slash > 0 and scale > 1 else None
 
     def close(self) -> None:
         if self._fd is not None:
@@ -203,12 +214,15 @@ class WakeAhead:
             return None
         lead = self.lead_ns
         best = None
-        for key, due in list(self._due.items()):
+        expired = None
+        for key, due in self._due.items():
             if due + lead <= now_ns:
-                del self._due[key]
-                self.counters["wake_missed"] += 1
+                expired = key if expired is None else expired
             elif best is None or due < best:
                 best = due
+        if expired is not None:  # one at a time: a miss is rare, and no list per call
+            del self._due[expired]
+            self.counters["wake_missed"] += 1
         if best is None:
             return None
         if now_ns < self._quiet_until:
@@ -230,6 +244,12 @@ class WakeAhead:
         self.counters["wake_poll_ms"] = self._poll_ns // 1_000_000
         if caught:
             self.counters["wake_caught"] += 1
+
+    def close(self) -> None:
+        """Release the runnable-task reader (when it is the default one)."""
+        close = getattr(self.runnable, "close", None)
+        if close is not None:
+            close()
 
     def preempted(self, now_ns: int) -> None:
         """A yield came back more than the lead later: another task holds this core. Once in
