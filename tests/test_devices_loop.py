@@ -392,7 +392,9 @@ def test_a_stop_whose_exception_was_dropped_still_ends_homing(emulated_usb):
         assert events[-1] == "stopped before the device was ready", events
         result = lines[-1]
         assert result["state"] == "stopped"
-        assert result["after_signal_s"] < 1.0, result  # a Falcon cycle is 1 ms
+        # Within a few 1 ms cycles and close(); the dropped exception alone homed on until
+        # the 30 s timeout. A busy machine may stretch the close, not to 10 s.
+        assert result["after_signal_s"] < 10.0, result
         assert not any(emu.state()["motor_command"])
 
 
