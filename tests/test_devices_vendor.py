@@ -7,12 +7,14 @@ messages — never the vendors' libraries or hardware."""
 from __future__ import annotations
 
 import ctypes
+import gc
 import math
 import os
 import sys
 import threading
 import time
 import types
+import weakref
 from enum import IntEnum
 
 import numpy as np
@@ -590,6 +592,9 @@ class FakeInverse3:
         self.forces: list[list[float]] = []
         self.silent = False  # nothing answers: the API logs and returns zeros
         self.broken = False  # the API raises
+        self.handle_broken = False  # the VerseGrip's port cannot be opened
+        self.streams: list[weakref.ref] = []  # every SerialStream made (the API closes the
+        # port when its stream is destroyed)
         self.versegrip = {"device_id": 7, "quaternion": [1.0, 0.0, 0.0, 0.0],
                           "buttons": [False, False, False], "battery_level": 0.9}
 
@@ -606,6 +611,7 @@ class FakeInverse3:
         class SerialStream:
             def __init__(self, arg0: str):
                 self.port = arg0
+                dev.streams.append(weakref.ref(self))
 
         class UUID:
             def __init__(self, raw=(0,) * 16):
@@ -640,6 +646,8 @@ class FakeInverse3:
 
         class Handle:
             def __init__(self, arg0):
+                if dev.handle_broken:
+                    raise RuntimeError("could not open port")
                 self.stream = arg0
 
             def GetVersegripStatus(self) -> dict:
@@ -719,6 +727,21 @@ def test_haply_not_found(haply):
     haply.port = ""
     with pytest.raises(DeviceNotFound, match="no Haply Inverse3"):
         HaplyInverse3Device().open()
+
+
+def test_haply_versegrip_failure_releases_the_inverse3(haply):
+    """An open that fails on its second part (the VerseGrip) releases the first (the
+    Inverse3's port), instead of leaving it open until the process ends."""
+    haply.handle_broken = True
+    dev = HaplyInverse3Device(handle_port="auto")
+    with pytest.raises(DeviceError, match="could not open the VerseGrip"):
+        dev.open()
+    assert not dev.is_open
+    gc.collect()
+    assert haply.streams and all(ref() is None for ref in haply.streams)
+    haply.handle_broken = False
+    with HaplyInverse3Device(handle_port="auto") as again:
+        assert again.cycle(np.zeros(3)).position_mm is not None
 
 
 def test_haply_real_api_on_a_silent_port():

@@ -263,3 +263,67 @@ def test_unplugging_mid_stream_raises_device_disconnected():
             assert drv("close") == {"closed": True, "is_open": False}  # no exception
         finally:
             drv.finish()
+
+
+#: Opens the Falcon twice with a stop (the device process's StopRequested) landing part-way,
+#: once before the device keeps its link and once after, then opens it for real. Counts the
+#: link's closes through a wrapper that runs the real close.
+STOPPED_OPEN = r"""
+import json
+import numpy as np
+from burrforce.server.devices.falcon import FalconDevice, device as falcon_device
+from burrforce.server.devices.falcon.ftdi import FtdiLink
+from burrforce.server.devices.loop import StopRequested
+
+closes = []
+real_close = FtdiLink.close
+def counted_close(link):
+    closes.append(link._claimed)
+    real_close(link)
+FtdiLink.close = counted_close
+
+def stop_once(real):
+    state = {"armed": True}
+    def stopped(*args, **kwargs):
+        if state["armed"]:
+            state["armed"] = False
+            raise StopRequested
+        return real(*args, **kwargs)
+    return stopped
+
+for window, name in (("before the link is kept", "replace"), ("after", "_reset_state")):
+    owner = falcon_device if name == "replace" else FalconDevice
+    real = getattr(owner, name)
+    setattr(owner, name, stop_once(real))
+    dev = FalconDevice()
+    try:
+        dev.open()
+        outcome = "opened"
+    except StopRequested:
+        outcome = "stopped"
+    setattr(owner, name, real)
+    dev.close()
+    print(json.dumps({"window": window, "outcome": outcome, "is_open": dev.is_open,
+                      "closes": list(closes)}), flush=True)
+    closes.clear()
+with FalconDevice() as dev:
+    state = dev.cycle(np.zeros(3))
+print(json.dumps({"reopened": True, "closes": list(closes)}), flush=True)
+"""
+
+
+def test_an_open_stopped_part_way_releases_the_link():
+    """A stop landing inside ``open`` (SIGTERM while the device process connects) releases
+    the USB link the open had claimed, whether or not the device had kept it yet: the next
+    open finds the Falcon free, and nothing is left commanded."""
+    with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
+        done = subprocess.run([sys.executable, "-c", STOPPED_OPEN], env=emu.client_env(),
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr[-4000:]
+        lines = [json.loads(line) for line in done.stdout.splitlines()]
+        for stopped in lines[:2]:
+            assert stopped["outcome"] == "stopped" and not stopped["is_open"], stopped
+            # Closed once, while it still held the interface.
+            assert stopped["closes"] == [True], stopped
+        assert lines[2] == {"reopened": True, "closes": [True]}
+        assert not any(emu.state()["motor_command"])

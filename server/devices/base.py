@@ -16,6 +16,7 @@ the same thing on every device.
 
 from __future__ import annotations
 
+import logging
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -24,6 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..haptics.profiles import DeviceProfile
+
+log = logging.getLogger(__name__)
 
 
 class DeviceError(RuntimeError):
@@ -127,8 +130,14 @@ class HapticDevice(ABC):
         """Connect to the device (raises DeviceNotFound, DeviceAccessDenied,
         VendorLibraryMissing or DeviceError with what to do)."""
         if not self._opened:
-            self._open()
-            self._opened = True
+            try:
+                self._open()
+                self._opened = True
+            except BaseException:
+                # Failed or stopped part-way (a stop signal, a second part missing): release
+                # whatever the back-end got to; its error is the one to report.
+                release_after_failed_open(self._close)
+                raise
 
     def home(self, timeout_s: float = 30.0,
              progress: Callable[[str], None] | None = None,
@@ -155,7 +164,8 @@ class HapticDevice(ABC):
             pass
 
     def close(self) -> None:
-        """Zero the force and release the device. Safe to call twice."""
+        """Zero the force and release the device. Safe to call twice. (An ``open`` that
+        failed or was stopped part-way has released what it had by itself.)"""
         if self._opened:
             try:
                 self.zero()
@@ -167,7 +177,8 @@ class HapticDevice(ABC):
         pass
 
     def _close(self) -> None:  # noqa: B027 — a hook: most back-ends release here
-        pass
+        """Release what ``_open`` acquired. Also called when ``_open`` raised part-way, so it
+        must release only what is there (and be safe to call twice)."""
 
     def __enter__(self) -> HapticDevice:
         self.open()
@@ -187,3 +198,12 @@ def clamp_force(force_N: np.ndarray, max_force_N: float) -> tuple[np.ndarray, bo
     if mag > max_force_N:
         return f * (max_force_N / mag), True
     return f, False
+
+
+def release_after_failed_open(close: Callable[[], None]) -> None:
+    """Run a back-end's ``_close`` (a device's or an actuator's) after its ``_open`` raised,
+    logging rather than raising its own failure: the open's error is what the user must see."""
+    try:
+        close()
+    except Exception:
+        log.warning("releasing a device after a failed open failed too", exc_info=True)

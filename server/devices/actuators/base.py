@@ -15,6 +15,8 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
+from ..base import release_after_failed_open
+
 WATCHDOG_DEFAULT_MS = 50.0
 
 
@@ -97,8 +99,12 @@ class Actuator(ABC):
         """Start the output, silent (raises the DeviceError family with what to do)."""
         if not self._opened:
             self.stats = ActuatorStats()
-            self._open()
-            self._opened = True
+            try:
+                self._open()
+                self._opened = True
+            except BaseException:
+                release_after_failed_open(self._close)  # whatever _open got to
+                raise
 
     def update(self, amplitude_N: float, frequency_hz: float, t_ns: int | None = None) -> None:
         """Render ``amplitude_N`` (N) at ``frequency_hz`` (Hz) from now on.
@@ -155,7 +161,8 @@ class Actuator(ABC):
 
     @abstractmethod
     def _close(self) -> None:
-        """Release the output (after :meth:`_silence`)."""
+        """Release the output (after :meth:`_silence`). Also called when ``_open`` raised
+        part-way: release only what is there (and be safe to call twice)."""
 
     def __enter__(self) -> Actuator:
         self.open()

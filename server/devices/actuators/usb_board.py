@@ -130,6 +130,7 @@ class UsbBoardActuator(Actuator):
         import usb.util
 
         dev = self._find()
+        self._dev = dev  # _close releases it whatever stops this open part-way
         try:
             try:
                 dev.set_configuration()
@@ -145,12 +146,10 @@ class UsbBoardActuator(Actuator):
             if not {bp.EP_OUT, bp.EP_IN} <= addrs:
                 raise DeviceError(f"USB {bp.VID:04x}:{bp.PID:04x} lacks bulk endpoints 0x01 / "
                                   f"0x81 (has {sorted(hex(a) for a in addrs)}): not a {LABEL}")
+            self._interface = intf.bInterfaceNumber
             usb.util.claim_interface(dev, intf.bInterfaceNumber)
         except usb.core.USBError as exc:
-            usb.util.dispose_resources(dev)
             raise map_usb_error(exc, "opening the board") from exc
-        self._dev = dev
-        self._interface = intf.bInterfaceNumber
         self._error = None
         self._stop = False
         self._pending.clear()

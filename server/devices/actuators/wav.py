@@ -153,7 +153,8 @@ class WavActuator(Actuator):
         self._osc.set_target(level, frequency_hz)
 
     def _close(self) -> None:
-        assert self._writer is not None and self._osc is not None
+        if self._writer is None or self._osc is None:  # _open failed before the file was open
+            return
         try:
             # Ramp down whatever is still sounding, so the file never ends on a tone.
             if self._t_first is not None and not self._osc.silent:

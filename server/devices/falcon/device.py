@@ -146,13 +146,14 @@ class FalconDevice(HapticDevice):
         link.open()
         try:
             self.firmware_status = ensure_firmware(link, self.firmware, log.info)  # → normal mode
+            log.info("Novint Falcon #%d (bus %s address %s): %s", self.index, dev.bus,
+                     dev.address, self.firmware_status)
+            self.info = replace(self.info, serial=f"usb:{dev.bus}-{dev.address}")
         except BaseException:
+            # Not through _close: a Falcon whose firmware is not running gets no command.
             link.close()
             raise
-        log.info("Novint Falcon #%d (bus %s address %s): %s", self.index, dev.bus,
-                 dev.address, self.firmware_status)
-        self.info = replace(self.info, serial=f"usb:{dev.bus}-{dev.address}")
-        self._link = link
+        self._link = link  # from here on, _close zeroes and releases it
         self._reset_state()
 
     def _close(self) -> None:

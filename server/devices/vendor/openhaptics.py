@@ -154,6 +154,8 @@ class OpenHapticsDevice(HapticDevice):
         self.info = replace(self.info, model=self._model or self.info.model)
 
     def _close(self) -> None:
+        if self._device is None:  # never started, or _open stopped it already
+            return
         self._closing = True  # the servo callback renders zero from now on
         ticks = self._ticks
         deadline = time.monotonic() + 0.2
