@@ -21,6 +21,12 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
   process samples its telemetry at 60 Hz and encodes each sample as the WebSocket does
   (``bench.telemetry_watch``, paused during every other run's chunks): what a live view
   costs. Both keep their per-packet state in a telemetry file, as under ``serve``;
+- ``hogged`` / ``hogged blocking``: the same cut, each on its own copy of the bone in a hot
+  loop of its own (one that wakes ahead, one that does not), while a CPU-bound task (a busy
+  Python loop, ``HOG``) runs on the servers' CPU, stopped during every other run's chunks: an
+  engine thread sharing the hot loop's core. A loop that polls would wait for that task's time
+  slice; the waking-ahead guard (``hotloop.wake``) notices and stops polling. Their own loops
+  keep the guard's back-off out of the other modes;
 - ``page closed`` / ``page open``: the browser view itself, open and closed on a cutting
   session of the real stack (``bench.latency_page``; ``--no-page`` skips it).
 
@@ -53,7 +59,12 @@ from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
 from .timing import machine_line
 
-MODES = ("echo", "overhead", "cutting", "blocking", "watched", "minimal")
+MODES = ("echo", "overhead", "cutting", "blocking", "watched", "minimal", "hogged",
+         "hogged blocking")
+#: The modes whose round trips are taken over the ticks that removed bone.
+CUTTING_MODES = ("cutting", "blocking", "watched", "minimal", "hogged", "hogged blocking")
+#: The CPU-bound task of the ``hogged`` modes: never blocks, never yields.
+HOG = "while True:\n    pass\n"
 #: A live view's sampling rate (the browser view's plots: >= 30 updates/s).
 WATCH_HZ = 60.0
 OVERHEAD_SESSION = 1
@@ -61,6 +72,8 @@ CUTTING_SESSION = 2
 MINIMAL_SESSION = 3
 WATCHED_SESSION = 4
 BLOCKING_SESSION = 5
+HOGGED_SESSION = 6
+HOGGED_BLOCKING_SESSION = 7
 #: The cut: the thesis's parallel case at α = 60°, rows across the 26 × 16 mm top face.
 RPM = 60_000.0
 FEED_MM_S = 3.0
@@ -241,7 +254,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     say = progress or (lambda text: None)
     key = new_key()
     bone = phantom("workpiece", voxel_mm)
-    shared = run_directory(3 * bone.grid.density.size * 5)
+    shared = run_directory(3 * bone.grid.density.size * 7)
     telemetry = TelemetryReader(shared)
     sessions = (
         SessionSpec(OVERHEAD_SESSION, "phantom:workpiece", 0.5, key,
@@ -257,6 +270,14 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     blocking_spec = SessionSpec(BLOCKING_SESSION, publish(bone, shared, "blocking.bone"), None,
                                 key, SessionConfig(), publish=True,
                                 telemetry=telemetry.path(BLOCKING_SESSION))
+    # Each hogged mode's loop: its session (on its own copy of the bone) and wake setting.
+    hogged_loops = {
+        mode: (SessionSpec(session, publish(bone, shared, f"{mode.replace(' ', '-')}.bone"),
+                           None, key, SessionConfig(), publish=True,
+                           telemetry=telemetry.path(session)), wake)
+        for mode, session, wake in (("hogged", HOGGED_SESSION, WakeConfig()),
+                                    ("hogged blocking", HOGGED_BLOCKING_SESSION,
+                                     WakeConfig(lead_us=0.0)))}
     del bone
     say("starting the echo and the hot loops (warm-up compiles or loads the kernels)")
     echo = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.echo"],
@@ -264,12 +285,19 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     hot = HotLoopProcess(HotLoopConfig(sessions=sessions))
     blocking = HotLoopProcess(HotLoopConfig(sessions=(blocking_spec,),
                                             wake=WakeConfig(lead_us=0.0)))
+    hogged = {mode: HotLoopProcess(HotLoopConfig(sessions=(spec,), wake=wake))
+              for mode, (spec, wake) in hogged_loops.items()}
     watcher = None
+    hog = None
     try:
         echo_port = int(echo.stdout.readline())  # type: ignore[union-attr]
         address = hot.start()
         blocking_address = blocking.start()
-        placement = _pin(hot.pid, blocking.pid, echo.pid)
+        hogged_address = {mode: loop.start() for mode, loop in hogged.items()}
+        hog = subprocess.Popen([sys.executable, "-c", HOG])
+        hog.send_signal(signal.SIGSTOP)
+        placement = _pin(hot.pid, blocking.pid, echo.pid, hog.pid,
+                         *(loop.pid for loop in hogged.values()))
         watcher = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.telemetry_watch",
                                     str(shared), str(WATCHED_SESSION), str(WATCH_HZ)],
                                    stdout=subprocess.PIPE, text=True)
@@ -282,7 +310,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             "blocking": _Client(blocking_address, BLOCKING_SESSION, key, _Cut()),
             "watched": _Client(address, WATCHED_SESSION, key, _Cut()),
             "minimal": _Client(address, MINIMAL_SESSION, key, _Cut()),
-        }
+        } | {mode: _Client(hogged_address[mode], spec.session_id, key, _Cut())
+             for mode, (spec, _) in hogged_loops.items()}
         results: list[RunStats] = []
         # The client's own collector must not show up as server latency: a full collection
         # in a process that imported numba takes ~30 ms. Frozen objects are never walked.
@@ -296,28 +325,33 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             while done < total:
                 n = min(CHUNK, total - done)
                 for mode in MODES:
-                    if mode == "watched":
-                        watcher.send_signal(signal.SIGCONT)
+                    beside = {"watched": watcher, "hogged": hog, "hogged blocking": hog}.get(mode)
+                    if beside is not None:
+                        beside.send_signal(signal.SIGCONT)
                     clients[mode].chunk(n, period)
-                    if mode == "watched":
-                        watcher.send_signal(signal.SIGSTOP)
+                    if beside is not None:
+                        beside.send_signal(signal.SIGSTOP)
                 done += n
                 say(f"{pacing}: {done}/{total}")
             for mode in MODES:
                 c = clients[mode]
                 rtt = np.array(c.rtt_us)
                 fraction = None
-                if mode in ("cutting", "blocking", "watched", "minimal"):
+                if mode in CUTTING_MODES:
                     mask = np.array(c.cutting, dtype=bool)
                     fraction = float(mask.mean()) if len(mask) else 0.0
                     rtt = rtt[mask]  # the expensive ticks: the burr removing bone
                 results.append(_stats(mode, pacing, rtt, c.lost, fraction))
         server = hot.stats()
         server_blocking = blocking.stats()
+        server_hogged = hogged["hogged"].stats()
         echo.stdout.close()  # type: ignore[union-attr]
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"stop",
                                                                 ("127.0.0.1", echo_port))
     finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
         watched_samples = ""
         if watcher is not None:
             watcher.send_signal(signal.SIGCONT)
@@ -329,6 +363,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                 watcher.communicate()
         hot.stop()
         blocking.stop()
+        for loop in hogged.values():
+            loop.stop()
         shutil.rmtree(shared, ignore_errors=True)
         try:
             echo.wait(2.0)
@@ -367,6 +403,13 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         "minimal_p99_us": paced["minimal"].p99_us,
         "server_tick_minimal_p50_us": minimal["tick_p50_us"],
         "server_tick_minimal_p99_us": minimal["tick_p99_us"],
+        "hogged_p50_us": paced["hogged"].p50_us,
+        "hogged_p99_us": paced["hogged"].p99_us,
+        "hogged_blocking_p50_us": paced["hogged blocking"].p50_us,
+        "hogged_blocking_p99_us": paced["hogged blocking"].p99_us,
+        "hogged_wake_counters": {name: value for name, value
+                                 in server_hogged["counters"].items()
+                                 if name.startswith("wake_")},
         "voxel_mm": voxel_mm,
         "placement": placement,
         "rate_hz": rate_hz,
@@ -432,6 +475,18 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"unwatched, p99 {result['watched_p99_us']:.0f} against {result['p99_us']:.0f} µs; "
         f"model stage p50 {result['server_tick_watched_p50_us']:.0f} against "
         f"{result['server_tick_p50_us']:.0f} µs.",
+        "",
+        "A CPU-bound task on the servers' CPU (`hogged` and `hogged blocking`: the same cut, "
+        "each on its own copy of the bone in a hot loop of its own, one waking ahead and one "
+        "not, while a busy loop that never blocks runs on their CPU, stopped during the other "
+        "modes' chunks): round trip p50 "
+        f"{result['hogged_p50_us']:.0f} µs and p99 {result['hogged_p99_us']:.0f} µs waking "
+        f"ahead, against {result['hogged_blocking_p50_us']:.0f} and "
+        f"{result['hogged_blocking_p99_us']:.0f} µs blocking. The waking loop's guard: "
+        + ", ".join(f"{name.removeprefix('wake_')} {value:g}"
+                    for name, value in result["hogged_wake_counters"].items())
+        + " (`hotloop.wake`: `preempted`, a yield that came back later than the lead; "
+        "`quiet`, a window skipped while backing off).",
         "",
         "Targets (1 kHz pacing):",
         f"- protocol overhead p50 ≤ 1.5 × echo p50: {overhead:.0f} µs against "
