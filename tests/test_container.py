@@ -36,7 +36,12 @@ from burrforce.server.bone import LoadOptions, load_bone
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
 COMPOSE = ROOT / "docker" / "compose.yaml"
+#: This run's own names (image tag, containers, compose project): two suites at once (a CI
+#: checkout beside a working copy) must not remove, reuse or run each other's. The image is
+#: also tagged TAG, which the next run's build finds its layers under.
+RUN = f"test-{os.getpid()}"
 TAG = "localhost/burrforce:test"
+RUN_TAG = f"localhost/burrforce:{RUN}"
 TOKEN = "container-test-token-0123456789"
 BIN = Path(sys.executable).parent
 
@@ -109,10 +114,11 @@ def podman(tmp_path_factory) -> Podman:
 @pytest.fixture(scope="module")
 def image(podman: Podman) -> Iterator[str]:
     base, _ = podman.base_image()
-    podman.build(TAG, ROOT, base)
-    yield TAG
-    # The layers an earlier build of the tag left behind (the image itself stays: the next
-    # run's build reuses its layers).
+    podman.build(RUN_TAG, ROOT, base, also=(TAG,))
+    yield RUN_TAG
+    podman("untag", RUN_TAG, RUN_TAG, check=False)
+    # The layers an earlier build of the tag left behind (the image itself stays under TAG:
+    # the next run's build reuses its layers).
     podman("image", "prune", "--force", check=False)
 
 
@@ -178,7 +184,7 @@ def test_any_user_id_in_group_0_loads_the_kernels(podman, image):
     cache numba cannot write to is not used at all, and the server would compile for half a
     minute or fail)."""
     http_port = free_port(socket.SOCK_STREAM)
-    name = "burrforce-test-anyuid"
+    name = f"burrforce-{RUN}-anyuid"
     box = podman.run(image, name, env={"BURRFORCE_TOKEN": TOKEN, "BURRFORCE_WORKERS": "1",
                                        "BURRFORCE_BONE": "phantom:workpiece"},
                      publish=(f"127.0.0.1:{http_port}:{HTTP_PORT}/tcp",),
@@ -195,7 +201,7 @@ def test_any_user_id_in_group_0_loads_the_kernels(podman, image):
 def test_readme_quick_start_in_a_container(podman, image, tmp_path):
     udp, http_port = free_port(), free_port(socket.SOCK_STREAM)
     http = f"http://127.0.0.1:{http_port}"
-    name = "burrforce-test-quickstart"
+    name = f"burrforce-{RUN}-quickstart"
     box = podman.run(image, name, env={"BURRFORCE_TOKEN": TOKEN,
                                        "BURRFORCE_BONE": "phantom:workpiece",
                                        "BURRFORCE_FRAME": "si_mm", "BURRFORCE_WORKERS": "1"},
@@ -312,7 +318,7 @@ def test_compose_up_streams_and_recovers_from_crashes(podman, image, podman_api,
         f"      - 127.0.0.1:{udp}:{UDP_PORT}/udp\n"
         f"      - 127.0.0.1:{http_port}:{HTTP_PORT}/tcp\n"
         f"    ulimits:\n{limits}")
-    project = "burrforce-test"
+    project = f"burrforce-{RUN}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("BURRFORCE_")} | {
         "DOCKER_HOST": podman_api, "BURRFORCE_TOKEN": TOKEN, "BURRFORCE_WORKERS": "1",
         "BURRFORCE_BONE": "phantom:workpiece", "BURRFORCE_FRAME": "si_mm"}
@@ -328,7 +334,7 @@ def test_compose_up_streams_and_recovers_from_crashes(podman, image, podman_api,
         subprocess.run([*compose, "down", "--volumes", "--timeout", "20"],
                        capture_output=True, text=True, timeout=120, env=env)
 
-    down()  # what a failed earlier run may have left: a journal in its volume
+    down()  # what an earlier run with this pid may have left: a journal in its volume
     try:
         run("up", "--detach", "--no-build", "--pull", "never")
         name = run("ps", "--format", "{{.Name}}").stdout.split()[0]

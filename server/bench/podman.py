@@ -181,12 +181,15 @@ class Podman:
         return BASE_IMAGE, time.monotonic() - t0
 
     def build(self, tag: str, context: Path, base: str | None = None,
-              dockerfile: str = "docker/Dockerfile", layer_cache: bool = True) -> float:
-        """``podman build`` of ``dockerfile`` in ``context`` as ``tag`` (docker format: OCI
-        images drop HEALTHCHECK); every layer anew unless ``layer_cache``; returns its wall
-        time, s."""
+              dockerfile: str = "docker/Dockerfile", layer_cache: bool = True,
+              also: tuple[str, ...] = ()) -> float:
+        """``podman build`` of ``dockerfile`` in ``context`` as ``tag`` and the names in
+        ``also`` (docker format: OCI images drop HEALTHCHECK); every layer anew unless
+        ``layer_cache``; returns its wall time, s."""
         args = ["build", "--format", "docker", "--network", "host", "-f",
                 str(context / dockerfile), "-t", tag]
+        for name in also:
+            args += ["-t", name]
         if not layer_cache:
             args.append("--no-cache")
         if base is not None:
