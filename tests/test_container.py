@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -113,13 +114,33 @@ def podman(tmp_path_factory) -> Podman:
 
 @pytest.fixture(scope="module")
 def image(podman: Podman) -> Iterator[str]:
+    _sweep_killed_runs(podman)
     base, _ = podman.base_image()
     podman.build(RUN_TAG, ROOT, base, also=(TAG,))
     yield RUN_TAG
     podman("untag", RUN_TAG, RUN_TAG, check=False)
-    # The layers an earlier build of the tag left behind (the image itself stays under TAG:
-    # the next run's build reuses its layers).
-    podman("image", "prune", "--force", check=False)
+    # The layers earlier builds of the tag left behind (the image itself stays under TAG: the
+    # next run's build reuses its layers); not a build still running beside this one.
+    podman("image", "prune", "--force", "--filter", "until=30m", check=False)
+
+
+def _sweep_killed_runs(podman: Podman) -> None:
+    """Remove what runs killed outright left (their cleanup never ran): containers, compose
+    volumes and image tags named after a test process that no longer exists. A run still
+    going keeps its own."""
+    def gone(name: str) -> bool:
+        m = re.search(r"burrforce[-:]test-(\d+)", name)
+        return m is not None and not Path(f"/proc/{m.group(1)}").exists()
+
+    def names(*args: str) -> list[str]:
+        return podman(*args, check=False).stdout.split()
+
+    for name in filter(gone, names("ps", "--all", "--format", "{{.Names}}")):
+        podman("rm", "--force", "--time", "0", name, check=False)
+    for name in filter(gone, names("volume", "ls", "--format", "{{.Name}}")):
+        podman("volume", "rm", "--force", name, check=False)
+    for ref in filter(gone, names("images", "--format", "{{.Repository}}:{{.Tag}}")):
+        podman("untag", ref, ref, check=False)
 
 
 def _demo(server: str, conn: Path, y_mm: float) -> dict:

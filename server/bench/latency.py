@@ -63,8 +63,13 @@ MODES = ("echo", "overhead", "cutting", "blocking", "watched", "minimal", "hogge
          "hogged blocking")
 #: The modes whose round trips are taken over the ticks that removed bone.
 CUTTING_MODES = ("cutting", "blocking", "watched", "minimal", "hogged", "hogged blocking")
-#: The CPU-bound task of the ``hogged`` modes: never blocks, never yields.
-HOG = "while True:\n    pass\n"
+#: The CPU-bound task of the ``hogged`` modes: never blocks, never yields, and dies with the
+#: bench (Linux's parent-death signal, PR_SET_PDEATHSIG = 1), however the bench ends.
+#: Its argument: the bench's pid (a bench that died before the signal was set is noticed).
+HOG = ("import ctypes, os, signal, sys\n"
+       "ctypes.CDLL(None).prctl(1, signal.SIGKILL)\n"
+       "if os.getppid() == int(sys.argv[1]):\n"
+       "    while True:\n        pass\n")
 #: A live view's sampling rate (the browser view's plots: >= 30 updates/s).
 WATCH_HZ = 60.0
 OVERHEAD_SESSION = 1
@@ -289,12 +294,13 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
               for mode, (spec, wake) in hogged_loops.items()}
     watcher = None
     hog = None
+    cpus = os.sched_getaffinity(0)  # _pin pins this process; the caller gets its CPUs back
     try:
         echo_port = int(echo.stdout.readline())  # type: ignore[union-attr]
         address = hot.start()
         blocking_address = blocking.start()
         hogged_address = {mode: loop.start() for mode, loop in hogged.items()}
-        hog = subprocess.Popen([sys.executable, "-c", HOG])
+        hog = subprocess.Popen([sys.executable, "-c", HOG, str(os.getpid())])
         hog.send_signal(signal.SIGSTOP)
         placement = _pin(hot.pid, blocking.pid, echo.pid, hog.pid,
                          *(loop.pid for loop in hogged.values()))
@@ -349,6 +355,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"stop",
                                                                 ("127.0.0.1", echo_port))
     finally:
+        gc.unfreeze()
+        os.sched_setaffinity(0, cpus)
         if hog is not None:
             hog.kill()
             hog.wait()
@@ -542,7 +550,7 @@ def main(args: argparse.Namespace) -> int:
 
     from . import latency_page
 
-    cpus = os.sched_getaffinity(0)  # run() pins this process; the page part starts unpinned
+    cpus = os.sched_getaffinity(0)  # the page part's CPUs (run() pins, then restores)
     result = run(args.samples, args.samples_b2b, args.voxel_mm, progress=say)
     failed = False
     if args.no_page:

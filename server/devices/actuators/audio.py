@@ -149,8 +149,7 @@ class AudioActuator(Actuator):
                 channels=self.channels, dtype="float32", latency=self.latency,
                 callback=self._callback)
             self._stream.start()
-        except sd.PortAudioError as exc:
-            self._stream = None
+        except sd.PortAudioError as exc:  # _close closes a stream that was made, not started
             raise DeviceError(f"cannot start audio output on {info['name']!r} at "
                               f"{self.rate_hz} Hz, {self.channels} ch: {exc}") from exc
         self.output_latency_s = float(self._stream.latency)

@@ -166,17 +166,20 @@ class UsbBoardActuator(Actuator):
 
         self._stop = True
         self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
-            self._thread = None
-        dev, self._dev = self._dev, None
-        if dev is None:
-            return
+        thread, self._thread = self._thread, None
         try:
-            usb.util.release_interface(dev, self._interface)
-        except Exception:  # the board may be gone; nothing more to release then
+            if thread is not None:
+                thread.join(timeout=1.0)
+        except RuntimeError:  # an open stopped before the thread started: nothing to join
             pass
-        usb.util.dispose_resources(dev)
+        finally:
+            dev, self._dev = self._dev, None
+            if dev is not None:
+                try:
+                    usb.util.release_interface(dev, self._interface)
+                except Exception:  # the board may be gone; nothing more to release then
+                    pass
+                usb.util.dispose_resources(dev)
 
     # -- the sender thread --------------------------------------------------------------------
     def _run(self) -> None:

@@ -153,17 +153,18 @@ class WavActuator(Actuator):
         self._osc.set_target(level, frequency_hz)
 
     def _close(self) -> None:
-        if self._writer is None or self._osc is None:  # _open failed before the file was open
+        if self._writer is None:  # _open failed before the file was open
             return
         try:
             # Ramp down whatever is still sounding, so the file never ends on a tone.
-            if self._t_first is not None and not self._osc.silent:
+            if self._osc is not None and self._t_first is not None and not self._osc.silent:
                 self._osc.render(self._block, stale=True)
                 self._writer.write(self._block)
                 self._blocks_written += 1
         finally:
             self._writer.close()
             self._writer = None
+            self._osc = None
 
 
 def read_wav(path: str | os.PathLike) -> tuple[int, np.ndarray]:

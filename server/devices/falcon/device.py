@@ -143,8 +143,8 @@ class FalconDevice(HapticDevice):
                 "(its power supply, not just USB)")
         dev = found[self.index]
         link = FtdiLink(dev)
-        link.open()
         try:
+            link.open()
             self.firmware_status = ensure_firmware(link, self.firmware, log.info)  # → normal mode
             log.info("Novint Falcon #%d (bus %s address %s): %s", self.index, dev.bus,
                      dev.address, self.firmware_status)

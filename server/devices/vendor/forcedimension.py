@@ -102,12 +102,7 @@ class ForceDimensionDevice(HapticDevice):
         if ident < 0:
             raise self._error("could not open the Force Dimension device", opening=True)
         self._id = ident
-        try:
-            self._configure()
-        except BaseException:
-            drd.close(ident)
-            self._id = -1
-            raise
+        self._configure()  # if it raises, open() has _close release the device
 
     def _configure(self) -> None:
         dhd, drd, constants = self._dhd, self._drd, self._constants
