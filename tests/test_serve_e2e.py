@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -104,10 +105,31 @@ def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
             while removed() < 1.5 * first:
                 assert time.monotonic() < deadline, "the demo cut no second groove"
                 time.sleep(0.5)
+        # Stopped as Ctrl-C or `timeout` stop it: the signal reaches the whole process group,
+        # so the groove being cut ends (killed) a moment before serve begins to stop.
+        deadline = time.monotonic() + 30
+        while (client := _demo_client(serve.proc.pid)) is None:
+            assert time.monotonic() < deadline, "no demo groove was being cut"
+            time.sleep(0.1)
+        os.kill(client, signal.SIGTERM)
+        time.sleep(0.2)
     finally:
         serve.proc.send_signal(signal.SIGTERM)
         code = serve.proc.wait(timeout=60)
         reader.join(timeout=10)
     rest = "".join(lines.queue)
     assert code == 0, rest
-    assert "--demo: stopped" not in rest
+    assert "--demo: stopped" not in rest  # not "a groove failed"
+
+
+def _demo_client(serve_pid: int) -> int | None:
+    """The pid of the `burrforce client demo` that serve --demo is running, if any."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue  # gone meanwhile
+        if ppid == serve_pid and b"client\0demo" in cmdline:
+            return int(stat.parent.name)
+    return None
