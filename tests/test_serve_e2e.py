@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
+from burrforce.server.bench.procstat import children
 from burrforce.server.bench.serve_process import spawn_serve
 from burrforce.server.bone import LoadOptions, load_bone
 
@@ -124,12 +125,10 @@ def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
 
 def _demo_client(serve_pid: int) -> int | None:
     """The pid of the `burrforce client demo` that serve --demo is running, if any."""
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+    for pid in children().get(serve_pid, []):
         try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            cmdline = (stat.parent / "cmdline").read_bytes()
-        except (OSError, ValueError, IndexError):
+            if b"client\0demo" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return pid
+        except OSError:
             continue  # gone meanwhile
-        if ppid == serve_pid and b"client\0demo" in cmdline:
-            return int(stat.parent.name)
     return None

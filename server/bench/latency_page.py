@@ -34,7 +34,7 @@ import numpy as np
 
 from .chromium import WEBGL_ARGS, launch, missing
 from .latency import CHUNK, _Client, _Cut, _pin, _stats
-from .procstat import cpu_s
+from .procstat import children, cpu_s
 
 MODES = ("page closed", "page open")
 SESSION_ID = 1
@@ -73,20 +73,6 @@ def _serve(voxel_mm: float, data_dir: Path) -> int:
     return 0
 
 
-def _children() -> dict[int, list[int]]:
-    tree: dict[int, list[int]] = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = Path(entry.path, "stat").read_text()
-        except OSError:
-            continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        tree.setdefault(ppid, []).append(int(entry.name))
-    return tree
-
-
 def _subtree(root: int, tree: dict[int, list[int]]) -> list[int]:
     out, todo = [], [root]
     while todo:
@@ -121,7 +107,7 @@ class _Processes:
         self.hot_pid = hot_pid
 
     def snapshot(self) -> dict[str, dict[int, float]]:
-        tree = _children()
+        tree = children()
         groups: dict[str, list[int]] = {g: [] for g in GROUPS}
         for child in tree.get(os.getpid(), []):
             for pid in _subtree(child, tree):
@@ -189,7 +175,7 @@ def run(samples: int, voxel_mm: float, rate_hz: float = 1000.0, chunk: int = CHU
 
 def _browser_threads(stack_pid: int) -> list[int]:
     """Every thread of chromium's processes (not the stack's, not playwright's node)."""
-    tree = _children()
+    tree = children()
     tids = []
     for child in tree.get(os.getpid(), []):
         if child == stack_pid:

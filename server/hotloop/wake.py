@@ -38,6 +38,8 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from .bucket import TokenBucket
+
 #: How far ahead of a stream's predicted packet the loop starts polling, µs. The timer's own
 #: wake-up is late by ~80–100 µs on this machine, so polling starts ~150 µs ahead.
 DEFAULT_LEAD_US = 250.0
@@ -168,8 +170,7 @@ class WakeAhead:
         self._quiet_until = now_ns
         self._backoff_ns = int(BACKOFF_S * 1e9)
         self._preempted_at = now_ns - int(BACKOFF_MAX_S * 1e9) * 4
-        self._allowance = PREEMPT_BURST
-        self._allowance_t = now_ns
+        self._allowance = TokenBucket(PREEMPT_ALLOWANCE_HZ, PREEMPT_BURST)
         self._last: dict[object, int] = {}
         self._period: dict[object, float] = {}
         #: Each stream's predicted next arrival, ns; absent once its time passed.
@@ -258,11 +259,7 @@ class WakeAhead:
         back-off, which doubles each time this recurs within twice the back-off and starts
         again from BACKOFF_S after a longer quiet spell."""
         self.counters["wake_preempted"] += 1
-        self._allowance = min(PREEMPT_BURST, self._allowance + PREEMPT_ALLOWANCE_HZ
-                              * (now_ns - self._allowance_t) * 1e-9)
-        self._allowance_t = now_ns
-        if self._allowance >= 1.0:
-            self._allowance -= 1.0
+        if self._allowance.take(now_ns):
             return
         if now_ns - self._preempted_at > 2 * self._backoff_ns:
             self._backoff_ns = int(BACKOFF_S * 1e9)
