@@ -217,10 +217,14 @@ class FalconDevice(HapticDevice):
         else:
             commands = (0, 0, 0)
             leds = P.LED_RED
-        counts, buttons, homed = self._exchange(
-            P.encode_command((int(commands[0]), int(commands[1]), int(commands[2])),
-                             leds=leds, homing=True))
+        command = P.encode_command((int(commands[0]), int(commands[1]), int(commands[2])),
+                                   leds=leds, homing=True)
+        # The firmware reads its encoders when the command arrives, a fraction of a ms after
+        # the write; the reply then waits for the FTDI latency timer, and a host stall before
+        # it is read (preemption, a collection) can add many ms more. Stamped after the read,
+        # that delay lands on one sample's time and FOAW reads it as a jump in speed.
         t_ns = time.monotonic_ns()
+        counts, buttons, homed = self._exchange(command)
         self.cycles += 1
         now_homed = homed[0] and homed[1] and homed[2]
         if now_homed != self._homed:
