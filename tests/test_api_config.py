@@ -55,6 +55,21 @@ def test_waking_ahead_from_file_environment_and_flags(tmp_path):
     assert ServeConfig().wake.enabled
 
 
+def test_realtime_from_file_environment_and_flags(tmp_path):
+    """``serve --realtime`` (``hotloop.process.enter_realtime``) is off unless asked for."""
+    assert ServeConfig().realtime is False
+    toml = tmp_path / "c.toml"
+    toml.write_text("[server]\nrealtime = true\n")
+    assert load_config(toml, None, {}).realtime is True
+    assert load_config(None, None, {"BURRFORCE_REALTIME": "yes"}).realtime is True
+    assert load_config(toml, None, {"BURRFORCE_REALTIME": "0"}).realtime is False
+    # The flag is store_true with default None: absent, it leaves the file's value.
+    assert load_config(toml, {"realtime": None}, {}).realtime is True
+    toml.write_text("[server]\nrealtime = \"sometimes\"\n")
+    with pytest.raises(ValueError, match="realtime"):
+        load_config(toml, None, {})
+
+
 def test_a_missing_file_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="cannot read the config file"):
         load_config(tmp_path / "missing.toml")

@@ -4,8 +4,11 @@ session count, real sockets), checked for structure and counts, never for timing
 from __future__ import annotations
 
 import json
+import os
 
+import numpy as np
 import pytest
+from scheduling import FIFO_REASON, fifo_permitted
 
 from burrforce.server.bench import sessions as bench_sessions
 from burrforce.server.cli import main
@@ -24,7 +27,8 @@ def smoke(tmp_path_factory) -> tuple[list[dict], dict, str]:
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         code = main(["bench", "sessions", "--sessions", "1,2", "--seconds", "1",
-                     "--warmup-s", "0.3", "--json", "--out", str(out)])
+                     "--warmup-s", "0.3", "--phases", "independent", "--json",
+                     "--out", str(out)])
     assert code == 0
     written = json.loads((out / "sessions.json").read_text())
     return json.loads(printed.getvalue()), written, (out / "sessions.md").read_text()
@@ -36,6 +40,7 @@ def test_rows_have_the_required_keys_and_consistent_counts(smoke):
     assert written["rows"] == rows
     for r in rows:
         assert set(REQUIRED) <= set(r)
+        assert r["phases"] == "independent" and r["realtime_workers"] == 0
         assert r["workers"] >= 1 and len(r["worker_pids"]) == r["workers"]
         # One POSE per session per tick of the window (the schedule never skips a tick).
         assert r["sent"] == r["sessions"] * round(1.0 * 1000)
@@ -60,6 +65,21 @@ def test_the_markdown_has_a_table_per_count_the_machine_and_the_target(smoke):
     assert bench_sessions.TARGET in md
 
 
+def test_independent_stations_have_their_own_phase_and_rate():
+    offsets, periods = bench_sessions.station_clocks(64, "independent", seed=7)
+    assert offsets.shape == periods.shape == (64,)
+    assert 0 <= offsets.min() and offsets.max() < bench_sessions.PERIOD_NS
+    assert np.ptp(offsets) > 0.5 * bench_sessions.PERIOD_NS   # spread over the period
+    spread = np.abs(periods / bench_sessions.PERIOD_NS - 1) * 1e6
+    assert spread.max() <= bench_sessions.RATE_SPREAD_PPM and spread.max() > 10.0
+    again = bench_sessions.station_clocks(64, "independent", seed=7)
+    assert np.array_equal(again[0], offsets) and np.array_equal(again[1], periods)
+    offsets, periods = bench_sessions.station_clocks(8, "aligned")
+    assert not offsets.any() and np.all(periods == bench_sessions.PERIOD_NS)
+    with pytest.raises(ValueError, match="phases"):
+        bench_sessions.station_clocks(8, "random")
+
+
 def test_session_counts_are_parsed_and_checked():
     assert bench_sessions._counts("1, 2,16") == [1, 2, 16]
     for bad in ("", "0", "1,x", "300"):
@@ -75,6 +95,21 @@ def test_worker_pids_come_from_the_pool_else_from_the_single_loop():
     assert bench_sessions._worker_pids({"supervisor": {"pid": 11}}) == [11]
     with pytest.raises(RuntimeError, match="no hot-loop process"):
         bench_sessions._worker_pids({"supervisor": {"pid": None}, "workers": []})
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason=FIFO_REASON)
+def test_realtime_reaches_serve_and_the_generator(tmp_path, capsys):
+    code = main(["bench", "sessions", "--sessions", "1", "--seconds", "0.5", "--warmup-s",
+                 "0.2", "--realtime", "--json", "--out", str(tmp_path)])
+    assert code == 0
+    (row,) = json.loads(capsys.readouterr().out)
+    assert row["realtime_workers"] == row["workers"] >= 1 and row["generator_realtime"]
+    assert row["answered"] > 0
+    md = (tmp_path / "sessions.md").read_text()
+    assert "--realtime)" in md and "| loops under SCHED_FIFO | 1 of 1 |" in md
+    assert "SCHED_FIFO) |" in md   # the generator's row
+    # The generator thread went back to the normal scheduler when it was done.
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
 
 
 def test_reading_each_reply_as_it_comes_from_loops_that_do_not_wake_ahead(tmp_path, capsys):

@@ -86,6 +86,7 @@ def test_sessions_are_spread_over_workers_and_answer_on_their_workers_port(tmp_p
         assert [w["sessions"] for w in health["workers"]] == [2, 1]
         assert {w["state"] for w in health["workers"]} == {"running"}
         assert [w["restarts"] for w in health["workers"]] == [0, 0]
+        assert [w["realtime"] for w in health["workers"]] == [False, False]  # not asked for
 
         plane = stack.plane
         # Measured load wins over the count: worker 1's one session is busy, worker 0's

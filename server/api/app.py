@@ -13,6 +13,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from .. import __version__
+from ..hotloop.process import is_realtime
 from .docs_pages import add_docs_pages
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry
@@ -98,6 +99,8 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
                 "sessions": len(plane.worker_sessions(index)),
                 "state": worker_state(supervisor, hot, index),
                 "restarts": supervisor.worker_restarts(index) if supervisor is not None else 0,
+                # SCHED_FIFO granted (``serve --realtime``), read from the scheduler itself.
+                "realtime": up and is_realtime(hot.pid),
             })
         alive = all(w["state"] == "running" for w in workers)
         if not alive:

@@ -17,6 +17,7 @@ TOML (``burrforce serve --config FILE``)::
                                 # default: one per core less one)
     wake_ahead_us = 250         # poll from this long before a stream's next packet; 0: off
     wake_cpu_share = 0.4        # ...while a loop is awake less than this share of a core
+    realtime = false            # hot loops under SCHED_FIFO (needs CAP_SYS_NICE or rtprio)
 
     [session]                   # the default session serve starts with
     bone = "phantom:temporal"
@@ -89,6 +90,10 @@ class ServeConfig:
         wake_ahead_us, wake_cpu_share: each hot loop wakes this long before its streams'
             predicted packets and polls for them, while it is awake less than this share of
             a core (``hotloop.wake``); a lead of 0 blocks until each datagram arrives.
+        realtime: each hot loop's loop thread asks for SCHED_FIFO
+            (``hotloop.process.enter_realtime``) and blocks for each datagram instead of
+            waking ahead; where that is not permitted it runs as without (``/v1/health`` says
+            per worker).
         bone, voxel_mm, frame: the default session's bone and engine frame.
         device: the haptic device profile of the default session (``haptics.PROFILE_NAMES``):
             its output is then coupled. None: no device, the raw force.
@@ -110,6 +115,7 @@ class ServeConfig:
     workers: int | None = None
     wake_ahead_us: float = DEFAULT_LEAD_US
     wake_cpu_share: float = DEFAULT_CPU_SHARE
+    realtime: bool = False
     bone: str = "phantom:temporal"
     voxel_mm: float | None = None
     frame: str = "si_mm"
@@ -169,7 +175,7 @@ class ServeConfig:
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
                     "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions",
-                    "workers", "wake_ahead_us", "wake_cpu_share"),
+                    "workers", "wake_ahead_us", "wake_cpu_share", "realtime"),
          "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
                      "no_auth")}
 

@@ -1004,7 +1004,8 @@ def _bone_summary(reader: SharedBone, info: dict) -> dict:
 
 def start_hot_loop(config: ServeConfig) -> HotLoopProcess:
     """The hot loop with no sessions yet (the control plane adds them)."""
-    hot = HotLoopProcess(HotLoopConfig(config.host, config.udp_port, (), config.wake))
+    hot = HotLoopProcess(HotLoopConfig(config.host, config.udp_port, (), config.wake,
+                                       config.realtime))
     hot.start()
     return hot
 
@@ -1012,4 +1013,5 @@ def start_hot_loop(config: ServeConfig) -> HotLoopProcess:
 def start_hot_loops(config: ServeConfig) -> list[HotLoopProcess]:
     """``config.worker_count`` hot loops with no sessions yet, worker i on ``udp_port + i``
     (``hotloop.process.start_pool``)."""
-    return start_pool(config.host, config.udp_port, config.worker_count, wake=config.wake)
+    return start_pool(config.host, config.udp_port, config.worker_count, wake=config.wake,
+                      realtime=config.realtime)

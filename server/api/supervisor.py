@@ -23,11 +23,11 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from ..hotloop import HotLoopConfig, HotLoopProcess
+from ..hotloop import HotLoopProcess
 from .daemon import start_daemon, stop_daemon
 from .manager import ControlPlane
 from .metrics import LoopStats
@@ -128,8 +128,7 @@ class Supervisor:
         def warm() -> None:
             if self._stop.wait(delay_s):
                 return
-            spare = HotLoopProcess(HotLoopConfig(self.plane.hot.config.host, 0, (),
-                                                 self.plane.hot.config.wake))
+            spare = HotLoopProcess(replace(self.plane.hot.config, udp_port=0, sessions=()))
             try:
                 spare.spawn_spare()
             except RuntimeError as exc:
@@ -144,16 +143,17 @@ class Supervisor:
         threading.Thread(target=warm, name="burrforce-spare", daemon=True).start()
 
     def _take_spare(self, address: tuple[str, int]) -> HotLoopProcess:
-        wake = self.plane.hot.config.wake  # every worker wakes ahead alike
+        # Every worker wakes ahead, and is scheduled, alike.
+        like = replace(self.plane.hot.config, host=address[0], udp_port=address[1], sessions=())
         with self._spare_lock:
             spare, self.spare = self.spare, None
         if spare is not None and spare.is_alive() and spare.spare:
             # A spare reads its configuration only when started: it can take any port.
-            spare.config = HotLoopConfig(address[0], address[1], (), wake)
+            spare.config = like
             return spare
         if spare is not None:
             spare.stop()
-        return HotLoopProcess(HotLoopConfig(address[0], address[1], (), wake))
+        return HotLoopProcess(like)
 
     def public(self) -> dict:
         """For /v1/health: the pool's state, worker 0's pid, and the restarts (of every

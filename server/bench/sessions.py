@@ -5,18 +5,25 @@ each on its own 0.1 mm workpiece (so their grooves never meet), each cutting ben
 groove raster (α = 60°, 0.5 mm deep, 3 mm/s, 60 000 rpm) through the real protocol: hello →
 NEW_STREAM → keyed POSEs (``client.udp.SessionRules``: codec, tag, stream).
 
-One load generator (this process, one thread) sends every session's POSE at each 1 ms
-deadline of an absolute schedule; nothing spins, so the generator does not take a core per
-session. The POSEs are encoded and signed before the schedule starts, so during it the
-generator only sends and receives. Between deadlines it either sleeps and reads the replies at
-the next one, once a tick (``--read tick``, the default), or sleeps in ``select`` and reads each
-reply as it comes (``--read reply``: a wake-up per reply, on the cores the server uses). Reading
-once a tick changes no round trip, which is taken from the kernel's arrival stamp, so it is used
-only if the warm-up's replies all carried one; otherwise the run reads per reply and says so. Its
+One load generator (this process, one thread) sends each session's POSEs on that session's
+own 1 kHz schedule; nothing spins, so the generator does not take a core per session. By
+default (``--phases aligned``) every session's POSE is due at the same instant each tick, the
+worst case, where each worker meets its sessions' packets in one burst. Stations are
+independent machines, though: with ``--phases independent`` each session's clock has its own
+phase (uniform in the period) and its own rate (within ±50 ppm, so the phases slide over each
+other during the run and every relative alignment is visited). The POSEs are encoded and
+signed before the schedule starts, so during it the generator only sends and receives.
+Between sends it either sleeps and reads a session's replies just before that session's next
+send (``--read tick``, the default), or sleeps in ``select`` and reads each reply as it comes
+(``--read reply``: a wake-up per reply, on the cores the server uses). Reading at the next
+send changes no round trip, which is taken from the kernel's arrival stamp, so it is used only
+if the warm-up's replies all carried one; otherwise the run reads per reply and says so. Its
 own cost is reported (its thread's CPU % over the window and how late its sends were against
 the schedule) so that generator overload can be told from server overload. While it drives,
 it runs at the hot loop's raised priority where it may (the loop raises its own: a saturated
-loop would otherwise starve the generator on a small machine).
+loop would otherwise starve the generator on a small machine); with ``--realtime`` (``serve
+--realtime``) it runs under SCHED_FIFO one above the loops, as the stations it stands for do
+not wait for the server's cores.
 
 Definitions (per N, over the measured window, after the warm-up):
 
@@ -38,6 +45,7 @@ import argparse
 import ctypes
 import datetime as dt
 import gc
+import heapq
 import json
 import os
 import selectors
@@ -73,6 +81,10 @@ DRAIN_S = 0.5
 SO_TIMESTAMPNS = 35
 TIMESPEC = struct.Struct("@qq")
 PR_SET_TIMERSLACK, PR_GET_TIMERSLACK = 29, 30
+PHASES = ("independent", "aligned")
+#: Independent stations' clock rates differ by up to this much (crystal tolerance, or a
+#: software loop's own rate error, which is larger): over a 10 s window, phases slide by 0.5 ms.
+RATE_SPREAD_PPM = 50.0
 RECV_BYTES = 2048
 TARGET = ("8 cutting sessions at 1 kHz: p99 < 1 ms and 0 lost; cost per session linear until "
           "the cores are busy")
@@ -95,18 +107,22 @@ class _Stream:
 
 
 @contextmanager
-def _generator_scheduling(report: dict) -> Iterator[None]:
+def _generator_scheduling(report: dict, realtime: bool = False) -> Iterator[None]:
     """For this thread while it drives, restored after: the hot loop's priority where it
     may be had (the loop raises its own, and a saturated loop would otherwise starve the
     generator, which then measures its own lateness rather than the server), and
     ``select`` waking within ~1 µs of its timeout rather than Linux's default 50 µs slack
-    (the sends are due every 1 ms, and the generator must not spin to keep them).
-    ``report["generator_nice"]`` gets the niceness it ran at."""
-    from ..hotloop.process import raise_priority
+    (the sends are due every 1 ms, and the generator must not spin to keep them). With
+    ``realtime`` (the server's loops under SCHED_FIFO), SCHED_FIFO one above theirs where
+    allowed: the generator stands for stations on other machines, whose sends do not wait
+    for the server's cores. ``report["generator_nice"]`` gets the niceness it ran at,
+    ``report["generator_realtime"]`` whether it ran under SCHED_FIFO."""
+    from ..hotloop.process import HOT_LOOP_RT_PRIORITY, enter_realtime, raise_priority
 
     nice = os.getpriority(os.PRIO_PROCESS, 0)
     raised = raise_priority()
     report["generator_nice"] = os.getpriority(os.PRIO_PROCESS, 0)
+    fifo = report["generator_realtime"] = realtime and enter_realtime(HOT_LOOP_RT_PRIORITY + 1)
     try:
         prctl = ctypes.CDLL(None, use_errno=True).prctl
         old = prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
@@ -116,6 +132,8 @@ def _generator_scheduling(report: dict) -> Iterator[None]:
     try:
         yield
     finally:
+        if fifo:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         if prctl is not None and old > 0:
             prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(old), 0, 0, 0)
         if raised:
@@ -178,34 +196,40 @@ def _encode_all(s: _Stream, ticks: int) -> None:
                                             flags, t_us)[1])
 
 
-def _send_tick(streams: list[_Stream], k: int, due_ns: int, late_ns: np.ndarray) -> None:
-    """Every session's POSE of tick ``k``, stamped as it goes out; ``late_ns`` (one per
-    session) gets each send's lag behind ``due_ns``."""
-    clock = time.monotonic_ns
-    for j, s in enumerate(streams):
-        data = s.datagrams[k]
-        t = clock()
-        try:
-            s.sock.send(data)
-        except (ConnectionRefusedError, BlockingIOError):
-            pass  # counts as lost: no reply will come
-        s.send_ns[k] = t
-        late_ns[j] = t - due_ns
+def station_clocks(n: int, phases: str, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``n`` sessions' schedule: ``(offset_ns (n,), period_ns (n,))``, tick k due at
+    ``start + offset + k·period``. Aligned: zero offsets, 1 ms periods. Independent: offsets
+    uniform in [0, 1 ms), periods 1 ms within ±RATE_SPREAD_PPM, from ``seed``."""
+    if phases == "aligned":
+        return np.zeros(n), np.full(n, float(PERIOD_NS))
+    if phases != "independent":
+        raise ValueError(f"phases must be one of {PHASES}, got {phases!r}")
+    rng = np.random.default_rng(seed)
+    offsets = rng.uniform(0.0, PERIOD_NS, n)
+    periods = PERIOD_NS * (1.0 + rng.uniform(-1.0, 1.0, n) * RATE_SPREAD_PPM * 1e-6)
+    return offsets, periods
 
 
 def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: list[int],
-          kernel_stamps: bool, read_per_tick: bool = True) -> dict:
-    """Run the schedule: ``warmup_s`` then ``seconds`` of ticks, then the drain. Returns the
-    generator's and the server's CPU over the measured window, the send lateness, ns, and
-    ``read``: "tick" if the window's replies were read once a tick (``read_per_tick``, where
-    every warm-up reply carried the kernel's stamp), else "reply"."""
+          kernel_stamps: bool, read_per_tick: bool = True,
+          clocks: tuple[np.ndarray, np.ndarray] | None = None, realtime: bool = False) -> dict:
+    """Run the schedules: ``warmup_s`` then ``seconds`` of ticks per session, then the drain.
+    ``clocks``: each session's ``(offset_ns, period_ns)`` (:func:`station_clocks`; default
+    aligned); ``realtime``: the generator runs under SCHED_FIFO where allowed
+    (:func:`_generator_scheduling`). Returns the generator's and the server's CPU over the
+    measured window (from the first session's first measured tick to the last send), the
+    send lateness, ns, and ``read``: "tick" if the window's replies were read once a
+    session's tick (``read_per_tick``, where every warm-up reply carried the kernel's
+    stamp), else "reply"."""
     warm = round(warmup_s * 1000)
     ticks = warm + round(seconds * 1000)
     for s in streams:
         s.send_ns = np.zeros(ticks, dtype=np.int64)
         s.seq0 = s.rules.seq
         _encode_all(s, ticks)
-    late_ns = np.zeros((ticks, len(streams)), dtype=np.int64)
+    n = len(streams)
+    offsets, periods = clocks if clocks is not None else station_clocks(n, "aligned")
+    late_ns = np.zeros((ticks, n), dtype=np.int64)
     sel = selectors.SelectSelector()  # epoll's timeout is whole ms: too coarse for 1 kHz
     for s in streams:
         sel.register(s.sock, selectors.EVENT_READ, s)
@@ -234,34 +258,48 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
     gc_was = gc.isenabled()
     gc.disable()
     start = clock() + 20 * PERIOD_NS
+    # Each session's next due tick, earliest first: (due ns, session index, tick).
+    queue = [(start + round(float(offsets[j])), j, 0) for j in range(n)]
+    heapq.heapify(queue)
     cpu0 = gen0 = wall0 = None
     report: dict = {"read": "reply"}
     per_tick = False
-    with _generator_scheduling(report):
+    with _generator_scheduling(report, realtime):
         try:
-            k = 0
-            while k < ticks:
-                due = start + k * PERIOD_NS
+            while queue:
+                due, j, k = queue[0]
                 now = clock()
                 if now >= due:
-                    if k == warm:
+                    if k == warm and gen0 is None:
                         per_tick = read_per_tick and kernel_stamps and all(
                             s.replies and all(kernel for kernel, _, _ in s.replies)
                             for s in streams)
                         report["read"] = "tick" if per_tick else "reply"
                         cpu0 = [cpu_s(p) for p in worker_pids]
                         gen0, wall0 = time.thread_time_ns(), clock()
+                    s = streams[j]
                     if per_tick:
-                        for s in streams:
-                            drain(s)
-                    _send_tick(streams, k, due, late_ns[k])
-                    k += 1
+                        drain(s)
+                    t = clock()
+                    try:
+                        s.sock.send(s.datagrams[k])
+                    except (ConnectionRefusedError, BlockingIOError):
+                        pass  # counts as lost: no reply will come
+                    s.send_ns[k] = t
+                    late_ns[k, j] = t - due
+                    if k + 1 < ticks:
+                        heapq.heapreplace(queue, (start + round(float(offsets[j])
+                                                                + (k + 1) * float(periods[j])),
+                                                  j, k + 1))
+                    else:
+                        heapq.heappop(queue)
                     continue
                 if per_tick:
-                    # The kernel stamps each reply as it arrives: reading them at the next
-                    # deadline, in one wake-up a tick, changes no round trip and spares the
-                    # server's cores a wake-up per reply (measured: 29 % of a core for
-                    # 8 sessions when each reply woke the generator).
+                    # The kernel stamps each reply as it arrives: reading a session's replies
+                    # just before its next send, in the wake-up that send needs anyway,
+                    # changes no round trip and spares the server's cores a wake-up per
+                    # reply (measured: 29 % of a core for 8 sessions when each reply woke
+                    # the generator).
                     time.sleep((due - now) / 1e9)
                     continue
                 for key, _ in sel.select((due - now) / 1e9):
@@ -358,9 +396,15 @@ def _worker_pids(health: dict) -> list[int]:
 
 
 def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: str = "tick",
-            progress=lambda text: None, wake_ahead_us: float | None = None) -> dict:
-    """One session count on a fresh ``burrforce serve``: a row of the results."""
+            progress=lambda text: None, wake_ahead_us: float | None = None,
+            phases: str = "aligned", seed: int = 1, realtime: bool = False) -> dict:
+    """One session count on a fresh ``burrforce serve``: a row of the results. ``phases``
+    and ``seed``: the sessions' clocks (:func:`station_clocks`); ``realtime``: ``serve
+    --realtime``, and the generator under SCHED_FIFO above the loops."""
+    clocks = station_clocks(n, phases, seed)
     extra = ["--workers", str(workers)] if workers is not None else []
+    if realtime:
+        extra.append("--realtime")
     if wake_ahead_us is not None:
         extra += ["--wake-ahead-us", f"{wake_ahead_us:g}"]
     with tempfile.TemporaryDirectory(prefix="burrforce-bench-sessions-") as tmp:
@@ -389,13 +433,15 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
             for s in streams:
                 _handshake(s)
             progress(f"N = {n}: {warmup_s:g} s warm-up, {seconds:g} s measured")
-            timing = drive(streams, warmup_s, seconds, pids, stamps, read == "tick")
+            timing = drive(streams, warmup_s, seconds, pids, stamps, read == "tick", clocks,
+                           realtime)
             health = _health(c.http_url)
         finally:
             for s in streams:
                 s.sock.close()
             serve.stop()
-    row = {"sessions": n, "workers": len(pids), "worker_pids": pids}
+    row = {"sessions": n, "workers": len(pids), "worker_pids": pids, "phases": phases,
+           "realtime_workers": sum(bool(w.get("realtime")) for w in health.get("workers") or ())}
     row |= tally(streams, timing["warm"])
     late_us = timing["late_ns"] / 1e3
     s50, s99 = _percentiles(late_us, (50, 99))
@@ -405,6 +451,7 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
         "send_late_max_us": float(late_us.max()) if len(late_us) else None,
         "generator_cpu_pct": timing["generator_cpu_pct"],
         "generator_nice": timing["generator_nice"],
+        "generator_realtime": timing["generator_realtime"],
         "read": timing["read"],
         "server_cpu_pct": timing["server_cpu_pct"],
         "server_cpu_per_session_pct": None if timing["server_cpu_pct"] is None
@@ -420,16 +467,20 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
 
 def run(counts: list[int], workers: int | None, warmup_s: float, seconds: float,
         progress=lambda text: None, read: str = "tick",
-        wake_ahead_us: float | None = None) -> dict:
+        wake_ahead_us: float | None = None, phases: str = "aligned",
+        seed: int = 1, realtime: bool = False) -> dict:
     rows = []
     for n in counts:
-        rows.append(run_one(n, workers, warmup_s, seconds, read, progress, wake_ahead_us))
+        rows.append(run_one(n, workers, warmup_s, seconds, read, progress, wake_ahead_us,
+                            phases, seed, realtime))
         r = rows[-1]
         progress(f"N = {n}: p50 {r['rtt_p50_us'] or 0:.0f} µs, p99 {r['rtt_p99_us'] or 0:.0f} "
                  f"µs, lost {r['lost']}/{r['sent']}, generator {r['generator_cpu_pct']:.0f} %")
     return {"voxel_mm": VOXEL_MM, "warmup_s": warmup_s, "seconds": seconds,
             "workers_option": workers, "read_option": read,
-            "wake_ahead_us_option": wake_ahead_us, "rows": rows}
+            "wake_ahead_us_option": wake_ahead_us, "realtime_option": realtime,
+            "phases_option": phases,
+            "phase_seed": seed, "rate_spread_ppm": RATE_SPREAD_PPM, "rows": rows}
 
 
 def _f(value: float | None, fmt: str = ".0f") -> str:
@@ -449,15 +500,23 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"({'--workers ' + str(workers) if workers else 'its default workers'}"
         + (f", --wake-ahead-us {result['wake_ahead_us_option']:g}"
            if result.get("wake_ahead_us_option") is not None else "")
+        + (", --realtime" if result.get("realtime_option") else "")
         + "), N sessions "
         f"each on its own workpiece at {result['voxel_mm']:g} mm voxels, cutting at "
         f"α = {ALPHA_DEG:g}°, {DEPTH_MM:g} mm deep, {FEED_MM_S:g} mm/s, {RPM:g} rpm, keyed "
         "POSEs at 1 kHz from one single-threaded load generator (all encoded and signed "
         "before the run; "
-        + ("it wakes once a tick, reads the replies the kernel has stamped and sends the "
-           "tick's POSEs" if result.get("read_option", "tick") == "tick" else
+        + ("it wakes for each session's tick, reads that session's replies the kernel has "
+           "stamped and sends its POSE" if result.get("read_option", "tick") == "tick" else
            "it wakes for each reply, `--read reply`")
-        + "); "
+        + "). "
+        + (f"Sessions' clocks independent (`--phases independent`, seed "
+           f"{result.get('phase_seed')}): each its own phase in the 1 ms period and its own "
+           f"rate within ±{RATE_SPREAD_PPM:g} ppm, so their phases slide over each other "
+           "during the run" if result.get("phases_option") == "independent" else
+           "Sessions' clocks aligned (`--phases aligned`): every session's POSE is due at "
+           "the same instant, the worst case")
+        + "; "
         f"{result['warmup_s']:g} s warm-up, then {result['seconds']:g} s measured.", "",
         "Round trip: send stamp → the reply's kernel arrival stamp. Lost: sent in the window "
         f"− answered after a {DRAIN_S:g} s drain. Late: answered with a round trip > 1 ms "
@@ -469,7 +528,7 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
     for r in result["rows"]:
         lines += [
             f"## N = {r['sessions']} ({r['workers']} worker{'s' if r['workers'] != 1 else ''}"
-            f", sessions per worker {r['sessions_per_worker']})", "",
+            f", sessions per worker {r['sessions_per_worker']}, clocks {r['phases']})", "",
             "| measure | value |", "|---|---:|",
             f"| POSEs sent / answered / lost | {r['sent']} / {r['answered']} / {r['lost']} |",
             f"| round trip p50 / p99 / p99.9 / max µs | {_f(r['rtt_p50_us'])} / "
@@ -484,7 +543,10 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
             f"{_f(r['server_cpu_per_session_pct'], '.1f')} % |",
             f"| worker restarts / health after the run | {r['restarts']} / "
             f"{r['health_after']} |",
-            f"| generator CPU (at nice {r['generator_nice']}) | {r['generator_cpu_pct']:.0f} % |",
+            f"| loops under SCHED_FIFO | {r['realtime_workers']} of {r['workers']} |",
+            f"| generator CPU (at nice {r['generator_nice']}"
+            f"{', SCHED_FIFO' if r['generator_realtime'] else ''}) | "
+            f"{r['generator_cpu_pct']:.0f} % |",
             f"| generator send lateness p50 / p99 / max µs | {_f(r['send_late_p50_us'])} / "
             f"{_f(r['send_late_p99_us'])} / {_f(r['send_late_max_us'])} |",
             "",
@@ -540,6 +602,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="read the replies once a tick, by the kernel's arrival stamps (the "
                         "default; per reply where the kernel gives none), or per reply as "
                         "each arrives (a wake-up per reply)")
+    p.add_argument("--realtime", action="store_true",
+                   help="`burrforce serve --realtime` (the loops under SCHED_FIFO), and the "
+                        "generator under SCHED_FIFO above them, where allowed")
+    p.add_argument("--phases", choices=PHASES, default="aligned",
+                   help="the sessions' clocks: aligned, every POSE of a tick sent at the "
+                        "same instant (the worst case, the default), or independent "
+                        "stations, each its own phase and a rate within "
+                        f"±{RATE_SPREAD_PPM:g} ppm")
+    p.add_argument("--phase-seed", type=int, default=1, metavar="SEED",
+                   help="the independent clocks' random seed. Default 1")
     p.add_argument("--json", action="store_true",
                    help="print the rows as JSON on stdout (progress goes to stderr)")
     p.add_argument("--out", type=Path, default=Path("benchmarks"),
@@ -552,7 +624,7 @@ def main(args: argparse.Namespace) -> int:
         print(text, file=sys.stderr, flush=True)
 
     result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say, args.read,
-                 args.wake_ahead_us)
+                 args.wake_ahead_us, args.phases, args.phase_seed, args.realtime)
     md, js = write_results(result, args.out)
     print(json.dumps(result["rows"], indent=2) if args.json else md.read_text())
     say(f"results written to {md} and {js}")

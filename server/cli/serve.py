@@ -75,6 +75,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a hot loop polls only while it is awake (working or polling) less "
                         "than this share of a core, so busy loops leave the cores to others. "
                         "Default 0.4")
+    p.add_argument("--realtime", action="store_true", default=None,
+                   help="run each hot loop's packet thread under the real-time scheduler "
+                        "(SCHED_FIFO, priority 5): it runs the moment a packet arrives, ahead "
+                        "of every normal task, and blocks for each packet instead of waking "
+                        "ahead. Needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO of 5; where it "
+                        "is not allowed serve says so and runs without it")
     p.add_argument("--bone", default=None,
                    help="the default session's bone: phantom:NAME (workpiece, layered, "
                         "temporal) or a bone file. Default phantom:temporal")
@@ -170,6 +176,22 @@ def _load_bone_kernels() -> None:
         pass
 
 
+def _say_realtime(say, plane) -> None:
+    """Whether ``--realtime`` took: each loop thread switches before it reports ready."""
+    from ..hotloop.process import HOT_LOOP_RT_PRIORITY, is_realtime
+
+    pids = [hot.pid for hot in plane.workers]
+    granted = sum(is_realtime(pid) for pid in pids if pid)
+    if granted == len(pids):
+        say(f"--realtime: {granted} hot loop(s) under SCHED_FIFO, priority "
+            f"{HOT_LOOP_RT_PRIORITY}")
+    else:
+        say(f"--realtime: not permitted for {len(pids) - granted} of {len(pids)} hot loop(s), "
+            f"which run at normal priority: SCHED_FIFO needs root, CAP_SYS_NICE or an "
+            f"RLIMIT_RTPRIO of at least {HOT_LOOP_RT_PRIORITY} (compose: `ulimits: "
+            f"{{rtprio: {HOT_LOOP_RT_PRIORITY}}}`)")
+
+
 def main(args: argparse.Namespace) -> int:
     from ..api.models import Parameters
     from ..api.sources import file_source
@@ -177,7 +199,7 @@ def main(args: argparse.Namespace) -> int:
 
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "workers": args.workers, "wake_ahead_us": args.wake_ahead_us,
-             "wake_cpu_share": args.wake_cpu_share,
+             "wake_cpu_share": args.wake_cpu_share, "realtime": args.realtime,
              "bone": args.bone, "voxel_mm": args.voxel_mm, "frame": args.frame,
              "device": args.device,
              "session_id": args.session_id, "key": args.key, "no_auth": args.no_auth,
@@ -223,6 +245,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         stack.start_backend()
         plane = stack.plane
+        if config.realtime:
+            _say_realtime(say, plane)
         if bone.startswith("phantom:"):
             source = plane.resolve(bone, None, config.voxel_mm)
         elif bone.startswith(("library:", "upload:", "snapshot:")):

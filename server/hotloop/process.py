@@ -56,6 +56,10 @@ HOT_LOOP_NICE = -10
 #: sessions. Measured on a first start on two cores: the demo's round trips p50 1.4 ms, p99
 #: 13 ms while the spare compiled at the loops' priority beside them.
 SPARE_WARMING_NICE = 19
+#: The loop thread's SCHED_FIFO priority with ``realtime`` (``enter_realtime``): below a
+#: device servo loop's (``devices.loop``, 10) on the same machine, whose 1 kHz force matters
+#: more than one packet's round trip.
+HOT_LOOP_RT_PRIORITY = 5
 #: The first message to a spare (``HotLoopProcess.spawn_spare``), and the bone it warms on.
 STANDBY = "standby"
 SPARE_BONE = "phantom:workpiece"
@@ -125,13 +129,16 @@ def bone_info(session: Session) -> dict:
 
 @dataclass(frozen=True)
 class HotLoopConfig:
-    """Where the hot loop listens, the sessions it starts with, and whether it wakes ahead of
-    its streams' packets (``hotloop.wake``)."""
+    """Where the hot loop listens, the sessions it starts with, whether it wakes ahead of
+    its streams' packets (``hotloop.wake``), and whether its loop thread asks for the
+    real-time scheduler (``enter_realtime``; it then blocks for each datagram instead of
+    waking ahead)."""
 
     host: str = "127.0.0.1"
     udp_port: int = 0
     sessions: tuple[SessionSpec, ...] = ()
     wake: WakeConfig = DEFAULT_WAKE
+    realtime: bool = False
 
 
 def usable_cores(cpu_max: str = "/sys/fs/cgroup/cpu.max") -> int:
@@ -186,10 +193,11 @@ def check_ports_free(host: str, udp_port: int, workers: int) -> None:
 
 def start_pool(host: str, udp_port: int, workers: int,
                timeout_s: float = START_TIMEOUT_S,
-               wake: WakeConfig = DEFAULT_WAKE) -> list[HotLoopProcess]:
+               wake: WakeConfig = DEFAULT_WAKE, realtime: bool = False) -> list[HotLoopProcess]:
     """Start ``workers`` hot loops with no sessions, worker i on ``udp_port + i`` (or an
-    ephemeral port each when ``udp_port`` is 0), each waking ahead as ``wake`` says. The
-    interpreters start and warm up side by side, not one after the other.
+    ephemeral port each when ``udp_port`` is 0), each waking ahead as ``wake`` says, and
+    asking for the real-time scheduler with ``realtime``. The interpreters start and warm up
+    side by side, not one after the other.
 
     Raises:
         ValueError: ``workers`` < 1.
@@ -198,7 +206,7 @@ def start_pool(host: str, udp_port: int, workers: int,
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     check_ports_free(host, udp_port, workers)
-    pool = [HotLoopProcess(HotLoopConfig(host, port, (), wake))
+    pool = [HotLoopProcess(HotLoopConfig(host, port, (), wake, realtime))
             for port in worker_ports(udp_port, workers)]
     errors: list[str] = []
 
@@ -502,17 +510,27 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     # packet.
     gc.collect()
     gc.freeze()
+    wake = config.wake
+    realtime = config.realtime and enter_realtime()
+    if realtime:
+        # Polling at a real-time priority would keep every normal task off the loop's core
+        # while it polls (a yield hands the core only to real-time peers), and the
+        # scheduler now runs the loop the moment a datagram wakes it.
+        wake = WakeConfig(0.0, wake.cpu_share)
     host, port = sock.getsockname()[:2]
     conn.send(("ready", host, port,
                {sid: bone_info(s) for sid, s in dispatcher.sessions.items()}))
-    commands = threading.Thread(target=_serve_commands,
+    # Threads inherit the scheduler: only the loop thread is real-time. The commands build
+    # sessions (seconds of work) and must not take a core at that priority.
+    commands = threading.Thread(target=_normal_priority(_serve_commands, realtime),
                                 args=(conn, dispatcher, lock, stopping, sock),
                                 name="burrforce-commands", daemon=True)
     commands.start()
     if beat is not None:
-        threading.Thread(target=_heartbeat, args=(beat, lock, stopping),
+        threading.Thread(target=_normal_priority(_heartbeat, realtime),
+                         args=(beat, lock, stopping),
                          name="burrforce-heartbeat", daemon=True).start()
-    serve(sock, dispatcher, lock, stopping, config.wake)
+    serve(sock, dispatcher, lock, stopping, wake)
     sock.close()
     commands.join(5.0)
 
@@ -529,6 +547,47 @@ def raise_priority(nice: int = HOT_LOOP_NICE) -> bool:
     except (PermissionError, OSError):
         return False
     return True
+
+
+def enter_realtime(priority: int = HOT_LOOP_RT_PRIORITY) -> bool:
+    """Put the calling thread under SCHED_FIFO at ``priority``: it then runs as soon as it
+    is woken, ahead of every normal task, instead of waiting its turn behind them. Measured
+    (``bench sessions``, 8 sessions on 2 workers): replies later than 1 ms 1.1 % against
+    5 % at nice -10. Allowed for root, with CAP_SYS_NICE, or an ``RLIMIT_RTPRIO`` of at
+    least ``priority`` (compose: ``ulimits: {rtprio: 5}``); elsewhere False and nothing
+    changes. The kernel still leaves normal tasks 5 % of each core
+    (``sched_rt_runtime_us``), and a loop that stops beating is restarted by its
+    supervisor."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError):
+        return False
+    return True
+
+
+def is_realtime(pid: int) -> bool:
+    """Whether process ``pid``'s main thread (a hot loop's loop thread) runs under
+    SCHED_FIFO; False for a process that is gone."""
+    try:
+        return os.sched_getscheduler(pid) == os.SCHED_FIFO
+    except (AttributeError, OSError):
+        return False
+
+
+def _normal_priority(target, realtime: bool):
+    """``target`` run in a thread that first leaves the real-time scheduler it inherited
+    (keeping the loop's niceness), when ``realtime``."""
+    if not realtime:
+        return target
+
+    def run(*args) -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:  # pragma: no cover - lowering is always allowed
+            pass
+        target(*args)
+
+    return run
 
 
 def _warm_spare() -> None:

@@ -1,0 +1,128 @@
+"""``serve --realtime``: each hot loop's packet thread under SCHED_FIFO, against real servers.
+
+Where it is permitted (root, CAP_SYS_NICE, an RLIMIT_RTPRIO of 5), the loop threads run under
+SCHED_FIFO and nothing else in their processes does, a restarted worker is scheduled alike,
+and ``/v1/health`` says so per worker. Where it is not, serve says so and serves as without.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+from scheduling import FIFO_REASON, fifo_permitted
+from waiting import wait_until as _wait
+
+from burrforce.client import connection
+from burrforce.client.udp import BurrClient, ServerGone
+from burrforce.server.api.config import ServeConfig
+from burrforce.server.api.models import Parameters
+from burrforce.server.api.stack import ServerStack
+from burrforce.server.bench.serve_process import READY_LINE
+from burrforce.server.hotloop.process import HOT_LOOP_RT_PRIORITY, is_realtime
+
+TOKEN = "realtime-test-token-0123456789"
+
+
+def _threads(pid: int) -> list[int]:
+    return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+
+
+def _answers(address, session) -> bool:
+    with BurrClient(*address, session.id, session.key_hex) as client:
+        for _ in range(200):
+            try:
+                return client.exchange((20.0, 0.0, 5.0), timeout_s=0.25).reply is not None
+            except (TimeoutError, ServerGone):
+                time.sleep(0.025)
+    return False
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason=FIFO_REASON)
+def test_realtime_loops_run_under_sched_fifo_alone_and_come_back_so_after_a_crash(tmp_path):
+    config = ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path, workers=2, realtime=True)
+    with ServerStack(config, TOKEN, journal=False) as stack:
+        source = stack.plane.resolve("phantom:workpiece", None, 0.25)
+        sessions = [stack.add_session(source, Parameters(), session_id=i) for i in (3, 4)]
+        assert [s.worker for s in sessions] == [0, 1]
+        for hot in stack.workers:
+            # The loop thread (the process's main thread) and nothing else in the process:
+            # the commands build sessions and must not hold a core at that priority.
+            assert os.sched_getscheduler(hot.pid) == os.SCHED_FIFO
+            assert os.sched_getparam(hot.pid).sched_priority == HOT_LOOP_RT_PRIORITY
+            others = [t for t in _threads(hot.pid) if t != hot.pid]
+            assert others, "the commands and heartbeat threads"
+            assert {os.sched_getscheduler(t) for t in others} == {os.SCHED_OTHER}
+        for s in sessions:
+            assert _answers(stack.plane.address(s), s)
+        health = httpx.get(stack.url + "/v1/health", timeout=10).json()
+        assert [w["realtime"] for w in health["workers"]] == [True, True]
+
+        # A worker restarted after a crash (or the spare taking its place) is scheduled alike.
+        victim = stack.workers[1].pid
+        os.kill(victim, signal.SIGKILL)
+        assert _wait(lambda: stack.supervisor.restarts and stack.supervisor.state == "running")
+        assert stack.workers[1].pid != victim
+        assert is_realtime(stack.workers[1].pid)
+        assert _answers(stack.plane.address(sessions[1]), sessions[1])
+        health = httpx.get(stack.url + "/v1/health", timeout=10).json()
+        assert [w["realtime"] for w in health["workers"]] == [True, True]
+
+
+def _without_rt(setpriv: str | None) -> tuple[list[str], object]:
+    """A command prefix and a preexec_fn that take SCHED_FIFO away from what they start:
+    no RLIMIT_RTPRIO, and for root no CAP_SYS_NICE either (``setpriv``)."""
+    def drop_rlimit() -> None:
+        resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+
+    prefix = [setpriv, "--bounding-set=-sys_nice", "--"] if os.geteuid() == 0 else []
+    return prefix, drop_rlimit
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and shutil.which("setpriv") is None,
+                    reason="root without setpriv (util-linux) cannot drop CAP_SYS_NICE")
+def test_where_realtime_is_not_permitted_serve_says_so_and_serves(tmp_path):
+    prefix, preexec = _without_rt(shutil.which("setpriv"))
+    conn = tmp_path / "connection.json"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("BURRFORCE_TOKEN", None)
+    proc = subprocess.Popen(
+        [*prefix, sys.executable, "-m", "burrforce.server.cli", "serve", "--realtime",
+         "--workers", "1", "--udp-port", "0", "--http-port", "0", "--no-auth",
+         "--bone", "phantom:workpiece", "--voxel-mm", "0.5", "--data-dir",
+         str(tmp_path / "data"), "--connection-file", str(conn)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+        preexec_fn=preexec)
+    try:
+        lines = []
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            lines.append(line)
+            if READY_LINE in line or not line:
+                break
+        banner = "".join(lines)
+        assert READY_LINE in banner, banner
+        assert "--realtime: not permitted for 1 of 1 hot loop(s)" in banner, banner
+        assert "RLIMIT_RTPRIO" in banner
+        c = connection.read(conn)
+        health = httpx.get(c.http_url + "/v1/health", timeout=10).json()
+        assert [w["realtime"] for w in health["workers"]] == [False]
+        assert not is_realtime(health["workers"][0]["pid"])
+        with BurrClient(c.host, c.udp_port, c.session, None) as client:
+            assert client.exchange((20.0, 0.0, 5.0), timeout_s=5.0).reply is not None
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
