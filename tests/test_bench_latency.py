@@ -10,6 +10,8 @@ import subprocess
 import sys
 import time
 
+from scheduling import fifo_permitted
+
 from burrforce.server.bench import latency
 
 
@@ -33,10 +35,15 @@ def test_every_mode_answers_and_the_results_name_them(tmp_path):
     wake = result["hogged_wake_counters"]
     assert {"wake_caught", "wake_missed", "wake_quiet", "wake_preempted"} <= set(wake)
     assert sum(v for k, v in wake.items() if k != "wake_poll_ms") > 0
+    # The realtime loops got SCHED_FIFO where this machine allows it, and the file says which.
+    assert set(result["realtime_granted"]) == {"realtime", "hogged realtime"}
+    assert set(result["realtime_granted"].values()) == {fifo_permitted()}
     md, js = latency.write_results(result | {"page": {"skipped": "test"}}, tmp_path)
     text = md.read_text()
     assert "| hogged | 1 kHz |" in text and "| hogged blocking | back-to-back |" in text
+    assert "| realtime | 1 kHz |" in text and "| hogged realtime | 1 kHz |" in text
     assert "A CPU-bound task on the servers' CPU" in text
+    assert ("SCHED_FIFO was NOT permitted here" in text) is not fifo_permitted()
     assert json.loads(js.read_text())["hogged_p50_us"] == result["hogged_p50_us"]
 
 

@@ -14,6 +14,9 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
 - ``blocking``: the same cut on its own copy of the bone, in a second hot loop that does not
   wake ahead (``serve --wake-ahead-us 0``): it sleeps in ``epoll_wait`` until each datagram,
   as the echo does;
+- ``realtime``: the same cut on its own copy of the bone, in a hot loop of its own started as
+  ``serve --realtime`` does (SCHED_FIFO, blocking for each datagram; where that is not
+  permitted it runs as ``blocking``, and the results say so);
 - ``minimal``: the same cut on its own copy of the bone with the scene features a bare
   cutting scene can drop turned off (no shaft, no vibration, no publishing): what skipping
   them saves;
@@ -21,8 +24,9 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
   process samples its telemetry at 60 Hz and encodes each sample as the WebSocket does
   (``bench.telemetry_watch``, paused during every other run's chunks): what a live view
   costs. Both keep their per-packet state in a telemetry file, as under ``serve``;
-- ``hogged`` / ``hogged blocking``: the same cut, each on its own copy of the bone in a hot
-  loop of its own (one that wakes ahead, one that does not), while a CPU-bound task (a busy
+- ``hogged`` / ``hogged blocking`` / ``hogged realtime``: the same cut, each on its own copy
+  of the bone in a hot loop of its own (one that wakes ahead, one that does not, one under
+  SCHED_FIFO), while a CPU-bound task (a busy
   Python loop, ``HOG``) runs on the servers' CPU, stopped during every other run's chunks: an
   engine thread sharing the hot loop's core. A loop that polls would wait for that task's time
   slice; the waking-ahead guard (``hotloop.wake``) notices and stops polling. Their own loops
@@ -59,10 +63,13 @@ from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
 from .timing import machine_line
 
-MODES = ("echo", "overhead", "cutting", "blocking", "watched", "minimal", "hogged",
-         "hogged blocking")
+MODES = ("echo", "overhead", "cutting", "blocking", "realtime", "watched", "minimal", "hogged",
+         "hogged blocking", "hogged realtime")
 #: The modes whose round trips are taken over the ticks that removed bone.
-CUTTING_MODES = ("cutting", "blocking", "watched", "minimal", "hogged", "hogged blocking")
+CUTTING_MODES = ("cutting", "blocking", "realtime", "watched", "minimal", "hogged",
+                 "hogged blocking", "hogged realtime")
+#: The modes that run the CPU-bound task beside their loop.
+HOGGED_MODES = ("hogged", "hogged blocking", "hogged realtime")
 #: The CPU-bound task of the ``hogged`` modes: never blocks, never yields, and dies with the
 #: bench (Linux's parent-death signal, PR_SET_PDEATHSIG = 1), however the bench ends.
 #: Its argument: the bench's pid (a bench that died before the signal was set is noticed).
@@ -79,6 +86,8 @@ WATCHED_SESSION = 4
 BLOCKING_SESSION = 5
 HOGGED_SESSION = 6
 HOGGED_BLOCKING_SESSION = 7
+REALTIME_SESSION = 8
+HOGGED_REALTIME_SESSION = 9
 #: The cut: the thesis's parallel case at α = 60°, rows across the 26 × 16 mm top face.
 RPM = 60_000.0
 FEED_MM_S = 3.0
@@ -254,6 +263,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     from ..bone import ShaftParams, phantom
     from ..bone.shared import publish, run_directory
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+    from ..hotloop.process import is_realtime
     from ..hotloop.wake import WakeConfig
 
     say = progress or (lambda text: None)
@@ -275,14 +285,17 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     blocking_spec = SessionSpec(BLOCKING_SESSION, publish(bone, shared, "blocking.bone"), None,
                                 key, SessionConfig(), publish=True,
                                 telemetry=telemetry.path(BLOCKING_SESSION))
-    # Each hogged mode's loop: its session (on its own copy of the bone) and wake setting.
-    hogged_loops = {
+    # The modes with a loop of their own: its session (on its own copy of the bone), its
+    # wake setting and whether it asks for SCHED_FIFO (``serve --realtime``).
+    own_loops = {
         mode: (SessionSpec(session, publish(bone, shared, f"{mode.replace(' ', '-')}.bone"),
                            None, key, SessionConfig(), publish=True,
-                           telemetry=telemetry.path(session)), wake)
-        for mode, session, wake in (("hogged", HOGGED_SESSION, WakeConfig()),
-                                    ("hogged blocking", HOGGED_BLOCKING_SESSION,
-                                     WakeConfig(lead_us=0.0)))}
+                           telemetry=telemetry.path(session)), wake, realtime)
+        for mode, session, wake, realtime in (
+            ("realtime", REALTIME_SESSION, WakeConfig(), True),
+            ("hogged", HOGGED_SESSION, WakeConfig(), False),
+            ("hogged blocking", HOGGED_BLOCKING_SESSION, WakeConfig(lead_us=0.0), False),
+            ("hogged realtime", HOGGED_REALTIME_SESSION, WakeConfig(), True))}
     del bone
     say("starting the echo and the hot loops (warm-up compiles or loads the kernels)")
     echo = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.echo"],
@@ -290,8 +303,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     hot = HotLoopProcess(HotLoopConfig(sessions=sessions))
     blocking = HotLoopProcess(HotLoopConfig(sessions=(blocking_spec,),
                                             wake=WakeConfig(lead_us=0.0)))
-    hogged = {mode: HotLoopProcess(HotLoopConfig(sessions=(spec,), wake=wake))
-              for mode, (spec, wake) in hogged_loops.items()}
+    own = {mode: HotLoopProcess(HotLoopConfig(sessions=(spec,), wake=wake, realtime=realtime))
+           for mode, (spec, wake, realtime) in own_loops.items()}
     watcher = None
     hog = None
     cpus = os.sched_getaffinity(0)  # _pin pins this process; the caller gets its CPUs back
@@ -299,11 +312,11 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         echo_port = int(echo.stdout.readline())  # type: ignore[union-attr]
         address = hot.start()
         blocking_address = blocking.start()
-        hogged_address = {mode: loop.start() for mode, loop in hogged.items()}
+        own_address = {mode: loop.start() for mode, loop in own.items()}
         hog = subprocess.Popen([sys.executable, "-c", HOG, str(os.getpid())])
         hog.send_signal(signal.SIGSTOP)
         placement = _pin(hot.pid, blocking.pid, echo.pid, hog.pid,
-                         *(loop.pid for loop in hogged.values()))
+                         *(loop.pid for loop in own.values()))
         watcher = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.telemetry_watch",
                                     str(shared), str(WATCHED_SESSION), str(WATCH_HZ)],
                                    stdout=subprocess.PIPE, text=True)
@@ -316,8 +329,10 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             "blocking": _Client(blocking_address, BLOCKING_SESSION, key, _Cut()),
             "watched": _Client(address, WATCHED_SESSION, key, _Cut()),
             "minimal": _Client(address, MINIMAL_SESSION, key, _Cut()),
-        } | {mode: _Client(hogged_address[mode], spec.session_id, key, _Cut())
-             for mode, (spec, _) in hogged_loops.items()}
+        } | {mode: _Client(own_address[mode], spec.session_id, key, _Cut())
+             for mode, (spec, _, _) in own_loops.items()}
+        realtime_granted = {mode: is_realtime(own[mode].pid)
+                            for mode in ("realtime", "hogged realtime")}
         results: list[RunStats] = []
         # The client's own collector must not show up as server latency: a full collection
         # in a process that imported numba takes ~30 ms. Frozen objects are never walked.
@@ -331,7 +346,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
             while done < total:
                 n = min(CHUNK, total - done)
                 for mode in MODES:
-                    beside = {"watched": watcher, "hogged": hog, "hogged blocking": hog}.get(mode)
+                    beside = watcher if mode == "watched" else hog if mode in HOGGED_MODES \
+                        else None
                     if beside is not None:
                         beside.send_signal(signal.SIGCONT)
                     clients[mode].chunk(n, period)
@@ -350,7 +366,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                 results.append(_stats(mode, pacing, rtt, c.lost, fraction))
         server = hot.stats()
         server_blocking = blocking.stats()
-        server_hogged = hogged["hogged"].stats()
+        server_hogged = own["hogged"].stats()
         echo.stdout.close()  # type: ignore[union-attr]
         socket.socket(socket.AF_INET, socket.SOCK_DGRAM).sendto(b"stop",
                                                                 ("127.0.0.1", echo_port))
@@ -371,7 +387,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                 watcher.communicate()
         hot.stop()
         blocking.stop()
-        for loop in hogged.values():
+        for loop in own.values():
             loop.stop()
         shutil.rmtree(shared, ignore_errors=True)
         try:
@@ -415,6 +431,11 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         "hogged_p99_us": paced["hogged"].p99_us,
         "hogged_blocking_p50_us": paced["hogged blocking"].p50_us,
         "hogged_blocking_p99_us": paced["hogged blocking"].p99_us,
+        "realtime_p50_us": paced["realtime"].p50_us,
+        "realtime_p99_us": paced["realtime"].p99_us,
+        "hogged_realtime_p50_us": paced["hogged realtime"].p50_us,
+        "hogged_realtime_p99_us": paced["hogged realtime"].p99_us,
+        "realtime_granted": realtime_granted,
         "hogged_wake_counters": {name: value for name, value
                                  in server_hogged["counters"].items()
                                  if name.startswith("wake_")},
@@ -495,6 +516,18 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
                     for name, value in result["hogged_wake_counters"].items())
         + " (`hotloop.wake`: `preempted`, a yield that came back later than the lead; "
         "`quiet`, a window skipped while backing off).",
+        "",
+        "Real-time (`realtime` and `hogged realtime`: the same cut, each on its own copy of "
+        "the bone in a hot loop of its own started as `serve --realtime` does, SCHED_FIFO and "
+        "blocking for each datagram"
+        + ("" if all(result["realtime_granted"].values()) else
+           "; SCHED_FIFO was NOT permitted here, so these loops ran at normal priority")
+        + f"): round trip p50 {result['realtime_p50_us']:.0f} µs and p99 "
+        f"{result['realtime_p99_us']:.0f} µs alone, {result['hogged_realtime_p50_us']:.0f} "
+        f"and {result['hogged_realtime_p99_us']:.0f} µs beside the busy loop; against "
+        f"{result['blocking_p50_us']:.0f} / {result['blocking_p99_us']:.0f} µs (`blocking`) "
+        f"and {result['hogged_blocking_p50_us']:.0f} / "
+        f"{result['hogged_blocking_p99_us']:.0f} µs (`hogged blocking`) at normal priority.",
         "",
         "Targets (1 kHz pacing):",
         f"- protocol overhead p50 ≤ 1.5 × echo p50: {overhead:.0f} µs against "
