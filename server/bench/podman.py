@@ -95,9 +95,12 @@ def containers_conf() -> str:
 def compose_ulimits() -> dict:
     """The same limits in a compose file's ``ulimits:`` form (compose's containers, created
     over the Docker API, do not get containers.conf's defaults), and this process's own nice
-    limit in place of docker/compose.yaml's 30, which a sandbox may refuse to raise to."""
+    and real-time priority limits in place of docker/compose.yaml's 30 and 5, which a sandbox
+    may refuse to raise to (podman passes compose's SYS_NICE on to the image's user, which
+    allows both)."""
     out = {}
-    limits = {**_limits(), "nice": _limit(resource.RLIMIT_NICE)}
+    limits = {**_limits(), "nice": _limit(resource.RLIMIT_NICE),
+              "rtprio": _limit(resource.RLIMIT_RTPRIO)}
     for name, value in limits.items():
         soft, hard = (int(v) for v in value.split(":"))
         out[name] = {"soft": soft, "hard": hard}
