@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import os
 
-from burrforce.server.hotloop.process import HOT_LOOP_RT_PRIORITY, enter_realtime
+from burrforce.server.realtime import HOT_LOOP_PRIORITY, REFUSED, enter_realtime
 
-FIFO_REASON = ("SCHED_FIFO is not permitted here (needs root, CAP_SYS_NICE or an "
-               f"RLIMIT_RTPRIO of {HOT_LOOP_RT_PRIORITY})")
+FIFO_REASON = "SCHED_FIFO is not permitted here: " + REFUSED.format(priority=HOT_LOOP_PRIORITY)
 
 
-def fifo_permitted() -> bool:
-    """Whether this process may use SCHED_FIFO: tried in a child, so nothing here changes."""
+def fifo_permitted(priority: int = HOT_LOOP_PRIORITY) -> bool:
+    """Whether this process may use SCHED_FIFO at ``priority``: tried in a child, so nothing
+    here changes."""
     pid = os.fork()
     if pid == 0:
-        os._exit(0 if enter_realtime() else 1)
+        os._exit(0 if enter_realtime(priority) else 1)
     return os.waitpid(pid, 0)[1] == 0

@@ -56,7 +56,7 @@ def test_waking_ahead_from_file_environment_and_flags(tmp_path):
 
 
 def test_realtime_from_file_environment_and_flags(tmp_path):
-    """``serve --realtime`` (``hotloop.process.enter_realtime``) is off unless asked for."""
+    """``serve --realtime`` (``server.realtime``) is off unless asked for."""
     assert ServeConfig().realtime is False
     toml = tmp_path / "c.toml"
     toml.write_text("[server]\nrealtime = true\n")

@@ -8,7 +8,6 @@ and ``/v1/health`` says so per worker. Where it is not, serve says so and serves
 from __future__ import annotations
 
 import os
-import resource
 import shutil
 import signal
 import subprocess
@@ -26,7 +25,7 @@ from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.models import Parameters
 from burrforce.server.api.stack import ServerStack
 from burrforce.server.bench.serve_process import READY_LINE
-from burrforce.server.hotloop.process import HOT_LOOP_RT_PRIORITY, is_realtime
+from burrforce.server.realtime import HOT_LOOP_PRIORITY, is_realtime
 
 TOKEN = "realtime-test-token-0123456789"
 
@@ -56,7 +55,7 @@ def test_realtime_loops_run_under_sched_fifo_alone_and_come_back_so_after_a_cras
             # The loop thread (the process's main thread) and nothing else in the process:
             # the commands build sessions and must not hold a core at that priority.
             assert os.sched_getscheduler(hot.pid) == os.SCHED_FIFO
-            assert os.sched_getparam(hot.pid).sched_priority == HOT_LOOP_RT_PRIORITY
+            assert os.sched_getparam(hot.pid).sched_priority == HOT_LOOP_PRIORITY
             others = [t for t in _threads(hot.pid) if t != hot.pid]
             assert others, "the commands and heartbeat threads"
             assert {os.sched_getscheduler(t) for t in others} == {os.SCHED_OTHER}
@@ -76,30 +75,35 @@ def test_realtime_loops_run_under_sched_fifo_alone_and_come_back_so_after_a_cras
         assert [w["realtime"] for w in health["workers"]] == [True, True]
 
 
-def _without_rt(setpriv: str | None) -> tuple[list[str], object]:
-    """A command prefix and a preexec_fn that take SCHED_FIFO away from what they start:
-    no RLIMIT_RTPRIO, and for root no CAP_SYS_NICE either (``setpriv``)."""
-    def drop_rlimit() -> None:
-        resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
-
-    prefix = [setpriv, "--bounding-set=-sys_nice", "--"] if os.geteuid() == 0 else []
-    return prefix, drop_rlimit
+def _has_sys_nice() -> bool:
+    with open("/proc/self/status") as f:
+        eff = next(line for line in f if line.startswith("CapEff:")).split()[1]
+    return bool(int(eff, 16) & (1 << 23))  # CAP_SYS_NICE
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and shutil.which("setpriv") is None,
-                    reason="root without setpriv (util-linux) cannot drop CAP_SYS_NICE")
+def _without_rt() -> list[str]:
+    """A command prefix that takes SCHED_FIFO away from what it starts: RLIMIT_RTPRIO 0
+    (``prlimit``) and, where this process holds it, CAP_SYS_NICE (``setpriv``: effective,
+    inheritable, ambient and bounding, so an exec as root does not get it back)."""
+    prefix = [shutil.which("prlimit"), "--rtprio=0:0"]
+    if _has_sys_nice():
+        prefix = [shutil.which("setpriv"), "--inh-caps=-sys_nice", "--ambient-caps=-sys_nice",
+                  "--bounding-set=-sys_nice", "--", *prefix]
+    return [*prefix, "--"]
+
+
+@pytest.mark.skipif(shutil.which("prlimit") is None or shutil.which("setpriv") is None,
+                    reason="prlimit and setpriv (util-linux) drop what allows SCHED_FIFO")
 def test_where_realtime_is_not_permitted_serve_says_so_and_serves(tmp_path):
-    prefix, preexec = _without_rt(shutil.which("setpriv"))
     conn = tmp_path / "connection.json"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("BURRFORCE_TOKEN", None)
     proc = subprocess.Popen(
-        [*prefix, sys.executable, "-m", "burrforce.server.cli", "serve", "--realtime",
+        [*_without_rt(), sys.executable, "-m", "burrforce.server.cli", "serve", "--realtime",
          "--workers", "1", "--udp-port", "0", "--http-port", "0", "--no-auth",
          "--bone", "phantom:workpiece", "--voxel-mm", "0.5", "--data-dir",
          str(tmp_path / "data"), "--connection-file", str(conn)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-        preexec_fn=preexec)
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         lines = []
         deadline = time.monotonic() + 300
@@ -111,7 +115,7 @@ def test_where_realtime_is_not_permitted_serve_says_so_and_serves(tmp_path):
         banner = "".join(lines)
         assert READY_LINE in banner, banner
         assert "--realtime: not permitted for 1 of 1 hot loop(s)" in banner, banner
-        assert "RLIMIT_RTPRIO" in banner
+        assert "RLIMIT_RTPRIO" in banner and "real-time budget" in banner
         c = connection.read(conn)
         health = httpx.get(c.http_url + "/v1/health", timeout=10).json()
         assert [w["realtime"] for w in health["workers"]] == [False]

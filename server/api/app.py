@@ -13,7 +13,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from .. import __version__
-from ..hotloop.process import is_realtime
+from ..realtime import is_realtime
 from .docs_pages import add_docs_pages
 from .manager import ApiError, ControlPlane
 from .metrics import LoopStats, registry

@@ -91,7 +91,7 @@ class ServeConfig:
             predicted packets and polls for them, while it is awake less than this share of
             a core (``hotloop.wake``); a lead of 0 blocks until each datagram arrives.
         realtime: each hot loop's loop thread asks for SCHED_FIFO
-            (``hotloop.process.enter_realtime``) and blocks for each datagram instead of
+            (``server.realtime``) and blocks for each datagram instead of
             waking ahead; where that is not permitted it runs as without (``/v1/health`` says
             per worker).
         bone, voxel_mm, frame: the default session's bone and engine frame.

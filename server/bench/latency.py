@@ -263,8 +263,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     from ..bone import ShaftParams, phantom
     from ..bone.shared import publish, run_directory
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
-    from ..hotloop.process import is_realtime
     from ..hotloop.wake import WakeConfig
+    from ..realtime import is_realtime
 
     say = progress or (lambda text: None)
     key = new_key()

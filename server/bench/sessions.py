@@ -21,9 +21,8 @@ if the warm-up's replies all carried one; otherwise the run reads per reply and 
 own cost is reported (its thread's CPU % over the window and how late its sends were against
 the schedule) so that generator overload can be told from server overload. While it drives,
 it runs at the hot loop's raised priority where it may (the loop raises its own: a saturated
-loop would otherwise starve the generator on a small machine); with ``--realtime`` (``serve
---realtime``) it runs under SCHED_FIFO one above the loops, as the stations it stands for do
-not wait for the server's cores.
+loop would otherwise starve the generator on a small machine), also with ``--realtime``
+(``serve --realtime``): the runs with and without then differ in the loops alone.
 
 Definitions (per N, over the measured window, after the warm-up):
 
@@ -106,22 +105,20 @@ class _Stream:
 
 
 @contextmanager
-def _generator_scheduling(report: dict, realtime: bool = False) -> Iterator[None]:
+def _generator_scheduling(report: dict) -> Iterator[None]:
     """For this thread while it drives, restored after: the hot loop's priority where it
     may be had (the loop raises its own, and a saturated loop would otherwise starve the
     generator, which then measures its own lateness rather than the server), and
     ``select`` waking within ~1 µs of its timeout rather than Linux's default 50 µs slack
-    (the sends are due every 1 ms, and the generator must not spin to keep them). With
-    ``realtime`` (the server's loops under SCHED_FIFO), SCHED_FIFO one above theirs where
-    allowed: the generator stands for stations on other machines, whose sends do not wait
-    for the server's cores. ``report["generator_nice"]`` gets the niceness it ran at,
-    ``report["generator_realtime"]`` whether it ran under SCHED_FIFO."""
-    from ..hotloop.process import HOT_LOOP_RT_PRIORITY, enter_realtime, raise_priority
+    (the sends are due every 1 ms, and the generator must not spin to keep them). Never
+    SCHED_FIFO, also against loops that are (``--realtime``): the runs with and without
+    then differ in the loops alone. ``report["generator_nice"]`` gets the niceness it ran
+    at."""
+    from ..hotloop.process import raise_priority
 
     nice = os.getpriority(os.PRIO_PROCESS, 0)
     raised = raise_priority()
     report["generator_nice"] = os.getpriority(os.PRIO_PROCESS, 0)
-    fifo = report["generator_realtime"] = realtime and enter_realtime(HOT_LOOP_RT_PRIORITY + 1)
     try:
         prctl = ctypes.CDLL(None, use_errno=True).prctl
         old = prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0)
@@ -131,8 +128,6 @@ def _generator_scheduling(report: dict, realtime: bool = False) -> Iterator[None
     try:
         yield
     finally:
-        if fifo:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         if prctl is not None and old > 0:
             prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(old), 0, 0, 0)
         if raised:
@@ -211,11 +206,10 @@ def station_clocks(n: int, phases: str, seed: int = 1) -> tuple[np.ndarray, np.n
 
 def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: list[int],
           kernel_stamps: bool, read_per_tick: bool = True,
-          clocks: tuple[np.ndarray, np.ndarray] | None = None, realtime: bool = False) -> dict:
+          clocks: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Run the schedules: ``warmup_s`` then ``seconds`` of ticks per session, then the drain.
     ``clocks``: each session's ``(offset_ns, period_ns)`` (:func:`station_clocks`; default
-    aligned); ``realtime``: the generator runs under SCHED_FIFO where allowed
-    (:func:`_generator_scheduling`). Returns the generator's and the server's CPU over the
+    aligned). Returns the generator's and the server's CPU over the
     measured window (from the first session's first measured tick to the last send), the
     send lateness, ns, and ``read``: "tick" if the window's replies were read once a
     session's tick (``read_per_tick``, where every warm-up reply carried the kernel's
@@ -256,23 +250,24 @@ def drive(streams: list[_Stream], warmup_s: float, seconds: float, worker_pids: 
     gc.freeze()
     gc_was = gc.isenabled()
     gc.disable()
-    start = clock() + 20 * PERIOD_NS
-    # Every send of the run in the order it is due: (due ns, session index, tick), as plain
-    # lists (the loop's per-send cost is the generator's own load on the server's cores).
-    due_ns = np.rint(start + offsets[None, :]
+    # Every send of the run in the order it is due: (due ns from the start, session index,
+    # tick), as plain lists (the loop's per-send cost is the generator's own load on the
+    # server's cores). Built before the start is taken: 16 sessions are 176 000 sends.
+    due_ns = np.rint(offsets[None, :]
                      + np.arange(ticks)[:, None] * periods[None, :]).astype(np.int64).ravel()
     order = np.argsort(due_ns, kind="stable")  # same instant: session order
     dues, sessions, tick_of = (due_ns[order].tolist(), (order % n).tolist(),
                                (order // n).tolist())
     del due_ns, order
+    start = clock() + 20 * PERIOD_NS
     cpu0 = gen0 = wall0 = None
     report: dict = {"read": "reply"}
     per_tick = False
-    with _generator_scheduling(report, realtime):
+    with _generator_scheduling(report):
         try:
             e, events, now = 0, len(dues), clock()
             while e < events:
-                due = dues[e]
+                due = start + dues[e]
                 if now < due:
                     now = clock()
                 if now >= due:
@@ -403,7 +398,7 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
             phases: str = "aligned", seed: int = 1, realtime: bool = False) -> dict:
     """One session count on a fresh ``burrforce serve``: a row of the results. ``phases``
     and ``seed``: the sessions' clocks (:func:`station_clocks`); ``realtime``: ``serve
-    --realtime``, and the generator under SCHED_FIFO above the loops."""
+    --realtime``."""
     clocks = station_clocks(n, phases, seed)
     extra = ["--workers", str(workers)] if workers is not None else []
     if realtime:
@@ -436,8 +431,7 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
             for s in streams:
                 _handshake(s)
             progress(f"N = {n}: {warmup_s:g} s warm-up, {seconds:g} s measured")
-            timing = drive(streams, warmup_s, seconds, pids, stamps, read == "tick", clocks,
-                           realtime)
+            timing = drive(streams, warmup_s, seconds, pids, stamps, read == "tick", clocks)
             health = _health(c.http_url)
         finally:
             for s in streams:
@@ -454,7 +448,6 @@ def run_one(n: int, workers: int | None, warmup_s: float, seconds: float, read: 
         "send_late_max_us": float(late_us.max()) if len(late_us) else None,
         "generator_cpu_pct": timing["generator_cpu_pct"],
         "generator_nice": timing["generator_nice"],
-        "generator_realtime": timing["generator_realtime"],
         "read": timing["read"],
         "server_cpu_pct": timing["server_cpu_pct"],
         "server_cpu_per_session_pct": None if timing["server_cpu_pct"] is None
@@ -547,9 +540,7 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
             f"| worker restarts / health after the run | {r['restarts']} / "
             f"{r['health_after']} |",
             f"| loops under SCHED_FIFO | {r['realtime_workers']} of {r['workers']} |",
-            f"| generator CPU (at nice {r['generator_nice']}"
-            f"{', SCHED_FIFO' if r['generator_realtime'] else ''}) | "
-            f"{r['generator_cpu_pct']:.0f} % |",
+            f"| generator CPU (at nice {r['generator_nice']}) | {r['generator_cpu_pct']:.0f} % |",
             f"| generator send lateness p50 / p99 / max µs | {_f(r['send_late_p50_us'])} / "
             f"{_f(r['send_late_p99_us'])} / {_f(r['send_late_max_us'])} |",
             "",
@@ -606,8 +597,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "default; per reply where the kernel gives none), or per reply as "
                         "each arrives (a wake-up per reply)")
     p.add_argument("--realtime", action="store_true",
-                   help="`burrforce serve --realtime` (the loops under SCHED_FIFO), and the "
-                        "generator under SCHED_FIFO above them, where allowed")
+                   help="`burrforce serve --realtime` (the loops under SCHED_FIFO where "
+                        "allowed; the generator stays at its usual priority)")
     p.add_argument("--phases", choices=PHASES, default="aligned",
                    help="the sessions' clocks: aligned, every POSE of a tick sent at the "
                         "same instant (the worst case, the default), or independent "

@@ -177,19 +177,17 @@ def _load_bone_kernels() -> None:
 
 
 def _say_realtime(say, plane) -> None:
-    """Whether ``--realtime`` took: each loop thread switches before it reports ready."""
-    from ..hotloop.process import HOT_LOOP_RT_PRIORITY, is_realtime
+    """Whether ``--realtime`` took: each loop thread switches before it reports ready (a
+    worker restarted later is reported by ``/v1/health``)."""
+    from ..realtime import HOT_LOOP_PRIORITY, REFUSED, is_realtime
 
-    pids = [hot.pid for hot in plane.workers]
-    granted = sum(is_realtime(pid) for pid in pids if pid)
+    pids = [hot.pid for hot in plane.workers if hot.is_alive()]
+    granted = sum(is_realtime(pid) for pid in pids)
     if granted == len(pids):
-        say(f"--realtime: {granted} hot loop(s) under SCHED_FIFO, priority "
-            f"{HOT_LOOP_RT_PRIORITY}")
+        say(f"--realtime: {granted} hot loop(s) under SCHED_FIFO, priority {HOT_LOOP_PRIORITY}")
     else:
         say(f"--realtime: not permitted for {len(pids) - granted} of {len(pids)} hot loop(s), "
-            f"which run at normal priority: SCHED_FIFO needs root, CAP_SYS_NICE or an "
-            f"RLIMIT_RTPRIO of at least {HOT_LOOP_RT_PRIORITY} (compose: `ulimits: "
-            f"{{rtprio: {HOT_LOOP_RT_PRIORITY}}}`)")
+            f"which run without it: {REFUSED.format(priority=HOT_LOOP_PRIORITY)}")
 
 
 def main(args: argparse.Namespace) -> int:

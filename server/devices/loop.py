@@ -45,6 +45,7 @@ from ...client.udp import SessionRules
 from ...proto.codec import ProtocolError
 from ...proto.frames import Transform, frame
 from ...proto.messages import ERROR_NAMES, MAX_REPLY_BYTES, NEW_STREAM, OK, Notice
+from ..realtime import DEVICE_LOOP_PRIORITY, enter_realtime
 from . import stats as st
 from .base import DeviceDisconnected, DeviceError
 from .mapping import WorkspaceMap
@@ -381,14 +382,6 @@ class DeviceLoop:
         self.stats[st.ST_LIVE] = 0.0
 
 
-def _try_realtime() -> bool:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-        return True
-    except (AttributeError, OSError, PermissionError):
-        return False
-
-
 def run(config: DeviceLoopConfig, raw_stats, events) -> None:
     """The device process's entry: open, loop, and always close (zero force).
 
@@ -415,7 +408,7 @@ def run(config: DeviceLoopConfig, raw_stats, events) -> None:
     signal.signal(signal.SIGINT, stop)
     failed = False
     try:
-        if config.realtime and _try_realtime():
+        if config.realtime and enter_realtime(DEVICE_LOOP_PRIORITY):
             say("servo loop: SCHED_FIFO")
         loop.opening = True
         try:

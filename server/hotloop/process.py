@@ -33,6 +33,7 @@ from ..bone.loaders import LoadOptions
 from ..bone.shared import SharedBone, SharedBoneRef
 from ..haptics.stage import warm_up as warm_haptics
 from ..model.params import CuttingParams
+from ..realtime import HOT_LOOP_PRIORITY, enter_realtime, leave_realtime
 from .dispatch import Dispatcher
 from .loop import LOOP_COUNTERS, open_socket, serve
 from .session import Session, SessionConfig
@@ -56,10 +57,6 @@ HOT_LOOP_NICE = -10
 #: sessions. Measured on a first start on two cores: the demo's round trips p50 1.4 ms, p99
 #: 13 ms while the spare compiled at the loops' priority beside them.
 SPARE_WARMING_NICE = 19
-#: The loop thread's SCHED_FIFO priority with ``realtime`` (``enter_realtime``): below a
-#: device servo loop's (``devices.loop``, 10) on the same machine, whose 1 kHz force matters
-#: more than one packet's round trip.
-HOT_LOOP_RT_PRIORITY = 5
 #: The first message to a spare (``HotLoopProcess.spawn_spare``), and the bone it warms on.
 STANDBY = "standby"
 SPARE_BONE = "phantom:workpiece"
@@ -131,7 +128,7 @@ def bone_info(session: Session) -> dict:
 class HotLoopConfig:
     """Where the hot loop listens, the sessions it starts with, whether it wakes ahead of
     its streams' packets (``hotloop.wake``), and whether its loop thread asks for the
-    real-time scheduler (``enter_realtime``; it then blocks for each datagram instead of
+    real-time scheduler (``server.realtime``; it then blocks for each datagram instead of
     waking ahead)."""
 
     host: str = "127.0.0.1"
@@ -511,7 +508,9 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     gc.collect()
     gc.freeze()
     wake = config.wake
-    realtime = config.realtime and enter_realtime()
+    # Measured (``bench sessions --workers 2``, 8 sessions, alternated runs): a p99 about
+    # half of nice -10's when the loops contend for the cores (README "Real-time scheduling").
+    realtime = config.realtime and enter_realtime(HOT_LOOP_PRIORITY)
     if realtime:
         # Polling at a real-time priority would keep every normal task off the loop's core
         # while it polls (a yield hands the core only to real-time peers), and the
@@ -549,32 +548,6 @@ def raise_priority(nice: int = HOT_LOOP_NICE) -> bool:
     return True
 
 
-def enter_realtime(priority: int = HOT_LOOP_RT_PRIORITY) -> bool:
-    """Put the calling thread under SCHED_FIFO at ``priority``: it then runs as soon as it
-    is woken, ahead of every normal task, instead of waiting its turn behind them. Measured
-    (``bench sessions --workers 2``, 8 sessions, six alternated pairs of 10 s runs): p99
-    0.76–1.44 ms against 1.58–2.96 ms at nice -10, replies later than 1 ms 0.6–2.0 %
-    against 2.1–6.2 %. Allowed for root, with CAP_SYS_NICE, or an ``RLIMIT_RTPRIO`` of at
-    least ``priority`` (compose: ``ulimits: {rtprio: 5}``); elsewhere False and nothing
-    changes. The kernel still leaves normal tasks 5 % of each core
-    (``sched_rt_runtime_us``), and a loop that stops beating is restarted by its
-    supervisor."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError):
-        return False
-    return True
-
-
-def is_realtime(pid: int) -> bool:
-    """Whether process ``pid``'s main thread (a hot loop's loop thread) runs under
-    SCHED_FIFO; False for a process that is gone."""
-    try:
-        return os.sched_getscheduler(pid) == os.SCHED_FIFO
-    except (AttributeError, OSError):
-        return False
-
-
 def _normal_priority(target, realtime: bool):
     """``target`` run in a thread that first leaves the real-time scheduler it inherited
     (keeping the loop's niceness), when ``realtime``."""
@@ -582,10 +555,7 @@ def _normal_priority(target, realtime: bool):
         return target
 
     def run(*args) -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except OSError:  # pragma: no cover - lowering is always allowed
-            pass
+        leave_realtime()
         target(*args)
 
     return run
