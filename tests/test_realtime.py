@@ -10,8 +10,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 
 import httpx
@@ -19,12 +17,11 @@ import pytest
 from scheduling import FIFO_REASON, fifo_permitted
 from waiting import wait_until as _wait
 
-from burrforce.client import connection
 from burrforce.client.udp import BurrClient, ServerGone
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.models import Parameters
 from burrforce.server.api.stack import ServerStack
-from burrforce.server.bench.serve_process import READY_LINE
+from burrforce.server.bench.serve_process import spawn_serve
 from burrforce.server.realtime import HOT_LOOP_PRIORITY, is_realtime
 
 TOKEN = "realtime-test-token-0123456789"
@@ -81,7 +78,7 @@ def _has_sys_nice() -> bool:
     return bool(int(eff, 16) & (1 << 23))  # CAP_SYS_NICE
 
 
-def _without_rt() -> list[str]:
+def _without_rt() -> tuple[str, ...]:
     """A command prefix that takes SCHED_FIFO away from what it starts: RLIMIT_RTPRIO 0
     (``prlimit``) and, where this process holds it, CAP_SYS_NICE (``setpriv``: effective,
     inheritable, ambient and bounding, so an exec as root does not get it back)."""
@@ -89,44 +86,23 @@ def _without_rt() -> list[str]:
     if _has_sys_nice():
         prefix = [shutil.which("setpriv"), "--inh-caps=-sys_nice", "--ambient-caps=-sys_nice",
                   "--bounding-set=-sys_nice", "--", *prefix]
-    return [*prefix, "--"]
+    return (*prefix, "--")
 
 
 @pytest.mark.skipif(shutil.which("prlimit") is None or shutil.which("setpriv") is None,
                     reason="prlimit and setpriv (util-linux) drop what allows SCHED_FIFO")
 def test_where_realtime_is_not_permitted_serve_says_so_and_serves(tmp_path):
-    conn = tmp_path / "connection.json"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env.pop("BURRFORCE_TOKEN", None)
-    proc = subprocess.Popen(
-        [*_without_rt(), sys.executable, "-m", "burrforce.server.cli", "serve", "--realtime",
-         "--workers", "1", "--udp-port", "0", "--http-port", "0", "--no-auth",
-         "--bone", "phantom:workpiece", "--voxel-mm", "0.5", "--data-dir",
-         str(tmp_path / "data"), "--connection-file", str(conn)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    serve = spawn_serve(tmp_path, "--realtime", "--workers", "1", "--no-auth", "--bone",
+                        "phantom:workpiece", "--voxel-mm", "0.5", prefix=_without_rt())
     try:
-        lines = []
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            lines.append(line)
-            if READY_LINE in line or not line:
-                break
-        banner = "".join(lines)
-        assert READY_LINE in banner, banner
+        banner = serve.banner
         assert "--realtime: not permitted for 1 of 1 hot loop(s)" in banner, banner
         assert "RLIMIT_RTPRIO" in banner and "real-time budget" in banner
-        c = connection.read(conn)
+        c = serve.connection
         health = httpx.get(c.http_url + "/v1/health", timeout=10).json()
         assert [w["realtime"] for w in health["workers"]] == [False]
         assert not is_realtime(health["workers"][0]["pid"])
         with BurrClient(c.host, c.udp_port, c.session, None) as client:
             assert client.exchange((20.0, 0.0, 5.0), timeout_s=5.0).reply is not None
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()
+        serve.stop()

@@ -45,11 +45,12 @@ class ServeProcess:
 
 
 def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0,
-                env: dict[str, str] | None = None) -> ServeProcess:
+                env: dict[str, str] | None = None, prefix: tuple[str, ...] = ()) -> ServeProcess:
     """Start ``burrforce serve --udp-port 0 --http-port 0 --data-dir FOLDER/data
     --connection-file FOLDER/connection.json ARGS…`` and wait until it is ready (a cold numba
     cache compiles the kernels first). ``BURRFORCE_TOKEN`` is not passed on; ``env`` is set
-    over this process's environment.
+    over this process's environment; ``prefix`` runs it under a wrapper command (``prlimit
+    … --``).
 
     Raises:
         RuntimeError: it exited or did not get ready in ``timeout_s``; the message holds what
@@ -59,7 +60,7 @@ def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0,
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     env.pop("BURRFORCE_TOKEN", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",
+        [*prefix, sys.executable, "-m", "burrforce.server.cli", "serve", "--udp-port", "0",
          "--http-port", "0", "--data-dir", str(folder / "data"), "--connection-file",
          str(conn), *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
