@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from burrforce.server.model import CuttingModel, CuttingParams, FlatWorkpiece
@@ -76,6 +76,8 @@ def test_linear_in_us_at_random_poses(depth, axis, v, speed, scale):
 
 
 @given(g0=st.floats(-10, 10), a=st.floats(0, 5), b=st.floats(0, 5))
+@example(g0=1e-324, a=5e-324, b=5e-324)  # subnormal sides: 1/A would overflow
+@example(g0=-2e-310, a=3e-310, b=1e-310)
 def test_box_fraction_is_a_cdf(g0, a, b):
     f = box_fraction(g0, a, b)
     assert 0.0 <= f <= 1.0

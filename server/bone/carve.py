@@ -53,6 +53,7 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     hx = spacing[0]
     hy = spacing[1]
     hz = spacing[2]
+    inv_hz = 1.0 / hz
     cx = centre[0]
     cy = centre[1]
     cz = centre[2]
@@ -76,6 +77,7 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     qz = cz - previous[2] if has_prev else 0.0
     q0 = 0.5 * (qx * (cx + previous[0]) + qy * (cy + previous[1]) + qz * (cz + previous[2])) \
         if has_prev else 0.0
+    inv_qz = 1.0 / (qz * hz) if qz != 0.0 else 0.0
     for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
         a0 = max(bi * BRICK, i_lo)
         a1 = min(bi * BRICK + BRICK - 1, i_hi)
@@ -113,15 +115,15 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                         if rest <= 0.0:
                             continue
                         reach_z = math.sqrt(rest)
-                        k_first = max(c0, math.ceil((cz - reach_z) / hz))
-                        k_last = min(c1, math.floor((cz + reach_z) / hz))
+                        k_first = max(c0, math.ceil((cz - reach_z) * inv_hz))
+                        k_last = min(c1, math.floor((cz + reach_z) * inv_hz))
                         if skip_old:
                             # Keep only k with q_row + qz·k·hz > 0 (closer to ``centre``).
                             q_row = qx * i * hx + qy * j * hy - q0
                             if qz > 0.0:
-                                k_first = max(k_first, math.floor(-q_row / (qz * hz)) + 1)
+                                k_first = max(k_first, math.floor(-q_row * inv_qz) + 1)
                             elif qz < 0.0:
-                                k_last = min(k_last, math.ceil(-q_row / (qz * hz)) - 1)
+                                k_last = min(k_last, math.ceil(-q_row * inv_qz) - 1)
                             elif q_row <= 0.0:
                                 continue
                         for k in range(k_first, k_last + 1):

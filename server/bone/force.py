@@ -89,6 +89,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     n_phi = cos_p.shape[0]
     m = cos_sub_t.shape[0]
     m2 = float(m * m)
+    inv_m2 = 1.0 / m2  # the sub-element loop multiplies: divisions queue on one unit
+    inv_feed = 1.0 / feed_speed if has_cut else 0.0
     # Half-sides of a sub-element along θ and (per sin θ) along φ, mm: the patch the path's
     # share is taken over (``history.history_share``).
     half_t = 0.5 * radius * d_theta / m
@@ -206,7 +208,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                         h2 * (cp2 * e2z - sp2 * e1z))
                     if frac <= 0.0:
                         continue
-                    w_area = area_unit * st2 / m2 * refined
+                    w_area = area_unit * st2 * inv_m2 * refined
                     area = w_area * frac
                     acc[11] += area
                     nsum1 += area * n1
@@ -216,12 +218,12 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                     # Weighted by how fast the patch cuts: a crossing that slides out of the
                     # cutting zone (where n·v_f → 0) fades out of the estimate instead of
                     # leaving it as a few noisy gradients.
-                    w_grad = w_area * (max(vn2, 0.0) / feed_speed if has_cut else 1.0)
+                    w_grad = w_area * (max(vn2, 0.0) * inv_feed if has_cut else 1.0)
                     gsx += w_grad * gx
                     gsy += w_grad * gy
                     gsz += w_grad * gz
                     if cutting and vn2 > 0.0:
-                        scale = w_unit * vn2 / m2 * refined
+                        scale = w_unit * vn2 * inv_m2 * refined
                         accumulate_forces(acc, scale * us_f, scale * usk_f, area, vn2, st2, ct2,
                                           cp2, sp2, abs_omega * radius * st2, spin_sign,
                                           radius)

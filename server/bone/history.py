@@ -29,7 +29,8 @@ import numpy as np
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
 
-# Columns of a segment: start a (3), direction u = b − a (3), radius r, |u|².
+# Columns of a segment: start a (3), direction u = b − a (3), radius r, |u|² (in the ring;
+# a candidate row holds 1/|u|² there instead, 0 for a point: ``history_share`` multiplies).
 SEG_AX = 0
 SEG_UX = 3
 SEG_R = 6
@@ -85,12 +86,16 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     is linearized across it, so a capsule wall crossing the patch gives its exact share
     (``box_fraction``) and a wall the patch lies along (the burr in its own groove) gives 0 or
     1, never a half."""
-    reach_1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
-    reach_2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
+    # Divisions and square roots share one unit, which ~400 calls a tick keep busy: the
+    # candidates carry 1/|u|², the patch's reach is taken only once p is inside a capsule,
+    # and the nearest wall's normal g is kept unnormalized (|g| = g_len), the share being
+    # scale-free.
+    patch = -1.0
     best = math.inf
     gx = 0.0
     gy = 0.0
     gz = 0.0
+    g_len = 1.0
     for i in range(1, int(cand[0, CAND_COUNT]) + 1):
         wx = px - cand[i, 0]
         wy = py - cand[i, 1]
@@ -98,10 +103,10 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
         ux = cand[i, 3]
         uy = cand[i, 4]
         uz = cand[i, 5]
-        l2 = cand[i, 7]
+        inv_l2 = cand[i, 7]
         t = 0.0
-        if l2 > 0.0:
-            t = (wx * ux + wy * uy + wz * uz) / l2
+        if inv_l2 > 0.0:
+            t = (wx * ux + wy * uy + wz * uz) * inv_l2
             t = min(max(t, 0.0), 1.0)
         qx = wx - t * ux
         qy = wy - t * uy
@@ -116,16 +121,21 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
         if d < best:
             best = d
             if q > 0.0:
-                gx = qx / q
-                gy = qy / q
-                gz = qz / q
-            if best + ON_SURFACE_MM <= -(reach_1 + reach_2):
-                return 0.0  # the whole patch is inside this capsule
+                gx = qx
+                gy = qy
+                gz = qz
+                g_len = q
+            if best + ON_SURFACE_MM <= 0.0:
+                if patch < 0.0:
+                    patch = (math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
+                             + math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z))
+                if best + ON_SURFACE_MM <= -patch:
+                    return 0.0  # the whole patch is inside this capsule
     if best == math.inf:
         return 1.0
     half_a = abs(gx * s1x + gy * s1y + gz * s1z)
     half_b = abs(gx * s2x + gy * s2y + gz * s2z)
-    return box_fraction(best + ON_SURFACE_MM, half_a, half_b)
+    return box_fraction((best + ON_SURFACE_MM) * g_len, half_a, half_b)
 
 
 @hot_inline
@@ -163,7 +173,7 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     cand[row, 4] = uy
     cand[row, 5] = uz
     cand[row, 6] = r
-    cand[row, 7] = l2
+    cand[row, 7] = 1.0 / l2 if l2 > 0.0 else 0.0
     return n + 1
 
 

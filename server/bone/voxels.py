@@ -31,7 +31,8 @@ def plane_fraction(depth, a, b, c):
     """Share of a voxel whose centre lies ``depth`` mm inside a plane, given the voxel's three
     half-extents projected on the plane's normal: the trapezoid whose half-ranges are the
     largest projection and the sum of the other two — exact for planes aligned with an axis,
-    symmetric about the plane always, so no volume is gained or lost on average."""
+    symmetric about the plane always, so no volume is gained or lost on average. Only the
+    ratios count: depth and half-extents may share any positive scale."""
     big = max(a, max(b, c))
     return box_fraction(depth, big, a + b + c - big)
 
@@ -55,8 +56,10 @@ def sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2):
     if d2 <= r_in2:
         return 255
     d = math.sqrt(d2)
-    frac = plane_fraction(radius - d, 0.5 * hx * abs(dx) / d, 0.5 * hy * abs(dy) / d,
-                          0.5 * hz * abs(dz) / d)
+    # The plane's share is scale-free: depth and half-extents (h·|Δ|/2d) are all taken ×2d,
+    # so no division waits on the square root (divisions and roots share one unit, and this
+    # runs for every partly covered voxel).
+    frac = plane_fraction(2.0 * d * (radius - d), hx * abs(dx), hy * abs(dy), hz * abs(dz))
     return int(frac * 255.0 + 0.5)
 
 
@@ -118,9 +121,10 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
     tick's coverage cache (``cached_coverage``).
     """
     nx, ny, nz = density.shape
-    fx = px / hx
-    fy = py / hy
-    fz = pz / hz
+    # Reciprocals of loop-invariant spacings: LLVM hoists them out of the caller's loops.
+    fx = px * (1.0 / hx)
+    fy = py * (1.0 / hy)
+    fz = pz * (1.0 / hz)
     i0f = math.floor(fx)
     j0f = math.floor(fy)
     k0f = math.floor(fz)
@@ -154,7 +158,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
         if cand[0, CAND_COUNT] > 0.0 and scale > 0.0:
             scale *= history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z)
     return (bone * scale, us * scale, usk * scale,
-            gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
+            gx * (1.0 / (255.0 * hx)), gy * (1.0 / (255.0 * hy)), gz * (1.0 / (255.0 * hz)))
 
 
 @hot_inline

@@ -68,9 +68,16 @@ def box_fraction(g0, half_a, half_b):
         return 0.0
     if g0 >= half_a + half_b:
         return 1.0
-    # In units of the larger half-range, so tiny elements cannot underflow 8·A·B.
-    x = g0 / half_a
-    r = half_b / half_a
+    # In units of the larger half-range, so tiny elements cannot underflow 8·A·B. One
+    # division, not two, where 1/A is finite: the carve and the path's share call this
+    # ~1 500 times a tick, and divisions queue on one unit.
+    if half_a > 1e-300:
+        inv_a = 1.0 / half_a
+        x = g0 * inv_a
+        r = half_b * inv_a
+    else:
+        x = g0 / half_a
+        r = half_b / half_a
     if r <= 1e-12:
         return 0.5 + 0.5 * x
     if x < r - 1.0:
@@ -106,9 +113,10 @@ def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, r
     acc[0] += f1
     acc[1] += f2
     acc[2] += f3
-    n1 = st * cp / vn
-    n2 = st * sp / vn
-    n3 = ct / vn
+    inv_vn = 1.0 / vn
+    n1 = st * cp * inv_vn
+    n2 = st * sp * inv_vn
+    n3 = ct * inv_vn
     acc[18] += f1 * n1
     acc[19] += f1 * n2
     acc[20] += f1 * n3
