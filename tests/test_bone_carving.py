@@ -234,6 +234,28 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     assert np.count_nonzero(grids[0].swept) > 0
 
 
+@pytest.mark.parametrize("dz", [5e-324, -5e-324, 3e-309, -1e-305])
+def test_a_step_of_a_subnormal_along_z_carves_like_none(dz):
+    """Two carving positions a subnormal apart in z (grid frame): the carve's skip of what the
+    last tick swept divided by qz·hz, which underflows to 0 (a ZeroDivisionError in the hot
+    loop, answered INTERNAL), or took an int of a float far beyond int64."""
+    grid = small_block()
+    engine = engine_for(grid)
+    axis, still = np.array(AXIS), np.zeros(3)
+    engine.step_raw(np.array([4.0, 4.0, 0.0]), axis, still, RPM)
+    swept = grid.swept.copy()
+    assert not engine.step_raw(np.array([4.0, 4.0, dz]), axis, still, RPM)
+    assert np.array_equal(grid.swept, swept)
+    # And a real step after it carves as ever: the burr 0.3 mm higher takes more bone.
+    assert engine.step_raw(np.array([4.0, 4.0, 0.3]), axis, still, RPM)
+    fresh = engine_for(small_block())
+    fresh.step_raw(np.array([4.0, 4.0, 0.0]), axis, still, RPM)
+    fresh._previous[:] = np.nan  # nothing skipped: every covered voxel from scratch
+    fresh.step_raw(np.array([4.0, 4.0, 0.3]), axis, still, RPM)
+    diff = fresh.grid.swept.astype(np.int16) - grid.swept.astype(np.int16)
+    assert 0 <= diff.min() and diff.max() <= 1 and np.count_nonzero(diff) <= 8
+
+
 @given(st.lists(st.floats(0.0, 1e9), max_size=256), st.integers(0, 2**32 - 1))
 def test_the_ticks_removal_is_summed_as_numpy_sums(values, seed):
     """``removed_mm3`` (one compiled call per cutting packet) adds in numpy's pairwise order,

@@ -136,6 +136,23 @@ def test_readers_see_whole_carving_ticks(tmp_path):
     assert np.array_equal(snapshot.grid.brick_bone, engine.grid.brick_bone)
 
 
+def test_a_tick_that_raises_still_closes_the_seqlock(tmp_path):
+    """An exception inside the tick (the loop answers it INTERNAL and goes on) must not leave
+    the counter odd: every reader of the shared bone would retry for good."""
+    bone = _bone()
+    ref = publish(bone, tmp_path, "b.bone")
+    engine = BoneEngine(SharedBone(ref, writable=True).bone().grid, bone.materials)
+    reader = SharedBone(ref)
+    engine.step((1.0, 1.5, 1.8), (0.0, 0.0, 1.0), (20.0, 0.0, 0.0), 60_000.0)
+    before = int(reader.header[H_SEQ])
+    engine.out.flags.writeable = False  # the tick cannot write its result: numba refuses it
+    with pytest.raises(Exception, match="readonly"):
+        engine.step((1.2, 1.5, 1.8), (0.0, 0.0, 1.0), (20.0, 0.0, 0.0), 60_000.0)
+    assert int(reader.header[H_SEQ]) == before + 2
+    swept, version = reader.consistent_swept()
+    assert version == engine.grid.version and np.array_equal(swept, engine.grid.swept)
+
+
 def test_seqlock_counter():
     header = np.zeros(8, dtype=np.int64)
     seq = read_begin(header)

@@ -77,7 +77,11 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     qz = cz - previous[2] if has_prev else 0.0
     q0 = 0.5 * (qx * (cx + previous[0]) + qy * (cy + previous[1]) + qz * (cz + previous[2])) \
         if has_prev else 0.0
-    inv_qz = 1.0 / (qz * hz) if qz != 0.0 else 0.0
+    # The half-space along a row is q_row + qzh·k > 0. A step along z too small for 1/qzh to
+    # be finite (a subnormal qz: 1e-323 mm) counts as none: it was a division by zero.
+    # Skipping is only a saving, so the voxels this keeps can only fail to gain.
+    qzh = qz * hz
+    inv_qzh = 1.0 / qzh if abs(qzh) > 1e-300 else 0.0
     for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
         a0 = max(bi * BRICK, i_lo)
         a1 = min(bi * BRICK + BRICK - 1, i_hi)
@@ -120,10 +124,14 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                         if skip_old:
                             # Keep only k with q_row + qz·k·hz > 0 (closer to ``centre``).
                             q_row = qx * i * hx + qy * j * hy - q0
-                            if qz > 0.0:
-                                k_first = max(k_first, math.floor(-q_row * inv_qz) + 1)
-                            elif qz < 0.0:
-                                k_last = min(k_last, math.ceil(-q_row * inv_qz) - 1)
+                            # Where the half-space crosses the row, clamped to the grid: a
+                            # step almost level in z puts it far away, beyond what converts to
+                            # an int.
+                            k_cut = min(max(-q_row * inv_qzh, -1.0), float(nz))
+                            if inv_qzh > 0.0:
+                                k_first = max(k_first, math.floor(k_cut) + 1)
+                            elif inv_qzh < 0.0:
+                                k_last = min(k_last, math.ceil(k_cut) - 1)
                             elif q_row <= 0.0:
                                 continue
                         for k in range(k_first, k_last + 1):

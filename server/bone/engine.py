@@ -392,25 +392,30 @@ class BoneEngine:
             if shared is not self._header:
                 self._header, self._header_at = shared, header_address(shared)
             write_begin(self._header_at)  # odd: voxels being written (SharedBone reads around)
-        rv = self._revolved
-        if rv is not None:
-            removed = self._tick_revolved(rv, centre_g, axis_g, feed_g, omega, cutting, carve)
-        else:
-            removed = bone_tick(
-                b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
-                b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v, b.sin_theta_v,
-                b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g, feed_g, omega,
-                cutting, carve, g.density, g.swept, g.labels, self.materials.us,
-                self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
-                g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
-                g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
-                self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
-                self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
-                self._stamp, self.path.ring, self.path.meta, self.path.candidates)
-        if removed:
-            g.version += 1
-        if shared is not None and carve:
-            write_end(self._header_at, g.version)
+        # A tick that raises (an INTERNAL reply) must still close the seqlock: readers of the
+        # shared bone would otherwise wait on an odd counter for good.
+        try:
+            rv = self._revolved
+            if rv is not None:
+                removed = self._tick_revolved(rv, centre_g, axis_g, feed_g, omega, cutting, carve)
+            else:
+                removed = bone_tick(
+                    b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
+                    b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v,
+                    b.sin_theta_v, b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g,
+                    feed_g, omega,
+                    cutting, carve, g.density, g.swept, g.labels, self.materials.us,
+                    self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
+                    g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
+                    g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
+                    self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
+                    self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
+                    self._stamp, self.path.ring, self.path.meta, self.path.candidates)
+            if removed:
+                g.version += 1
+        finally:
+            if shared is not None and carve:
+                write_end(self._header_at, g.version)
         self.ticks += 1
         return removed
 
