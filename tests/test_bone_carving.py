@@ -234,25 +234,29 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     assert np.count_nonzero(grids[0].swept) > 0
 
 
-@pytest.mark.parametrize("dz", [5e-324, -5e-324, 3e-309, -1e-305])
-def test_a_step_of_a_subnormal_along_z_carves_like_none(dz):
-    """Two carving positions a subnormal apart in z (grid frame): the carve's skip of what the
-    last tick swept divided by qz·hz, which underflows to 0 (a ZeroDivisionError in the hot
-    loop, answered INTERNAL), or took an int of a float far beyond int64."""
-    grid = small_block()
-    engine = engine_for(grid)
+@pytest.mark.parametrize(("dx", "dz"), [(0.0, 5e-324), (0.0, -5e-324), (0.0, 3e-309),
+                                       (0.05, 5e-324), (0.05, 1e-295), (0.05, -1e-295)])
+def test_a_step_of_almost_nothing_along_z_carves_as_from_scratch(dx, dz):
+    """Two carving positions a subnormal or 1e-295 mm apart in z (grid frame), with or
+    without a step sideways: the skip of what the last tick swept divided by qz·hz, which
+    underflowed to 0 (a ZeroDivisionError in the tick, answered INTERNAL), and a step almost
+    level in z put the half-space's cut far beyond what converts to an int. It must leave
+    what carving every covered voxel from scratch leaves (up to a coverage quantum, as
+    ``test_skipping_what_the_last_tick_swept_changes_nothing``)."""
     axis, still = np.array(AXIS), np.zeros(3)
-    engine.step_raw(np.array([4.0, 4.0, 0.0]), axis, still, RPM)
-    swept = grid.swept.copy()
-    assert not engine.step_raw(np.array([4.0, 4.0, dz]), axis, still, RPM)
-    assert np.array_equal(grid.swept, swept)
-    # And a real step after it carves as ever: the burr 0.3 mm higher takes more bone.
-    assert engine.step_raw(np.array([4.0, 4.0, 0.3]), axis, still, RPM)
-    fresh = engine_for(small_block())
-    fresh.step_raw(np.array([4.0, 4.0, 0.0]), axis, still, RPM)
-    fresh._previous[:] = np.nan  # nothing skipped: every covered voxel from scratch
-    fresh.step_raw(np.array([4.0, 4.0, 0.3]), axis, still, RPM)
-    diff = fresh.grid.swept.astype(np.int16) - grid.swept.astype(np.int16)
+    grids = [small_block(), small_block()]
+    engines = [engine_for(g) for g in grids]
+    for n, engine in enumerate(engines):
+        engine.step_raw(np.array([4.0, 4.0, 0.0]), axis, still, RPM)
+        swept = engine.grid.swept.copy()
+        if n == 1:
+            engine._previous[:] = np.nan  # nothing skipped
+        removed = engine.step_raw(np.array([4.0 + dx, 4.0, dz]), axis, still, RPM)
+        if dx == 0.0:  # the burr did not move: nothing to take
+            assert not removed and np.array_equal(engine.grid.swept, swept)
+        else:
+            assert removed
+    diff = grids[1].swept.astype(np.int16) - grids[0].swept.astype(np.int16)
     assert 0 <= diff.min() and diff.max() <= 1 and np.count_nonzero(diff) <= 8
 
 

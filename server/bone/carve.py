@@ -77,9 +77,10 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     qz = cz - previous[2] if has_prev else 0.0
     q0 = 0.5 * (qx * (cx + previous[0]) + qy * (cy + previous[1]) + qz * (cz + previous[2])) \
         if has_prev else 0.0
-    # The half-space along a row is q_row + qzh·k > 0. A step along z too small for 1/qzh to
-    # be finite (a subnormal qz: 1e-323 mm) counts as none: it was a division by zero.
-    # Skipping is only a saving, so the voxels this keeps can only fail to gain.
+    # The half-space along a row is q_row + qzh·k > 0, cut at k = −q_row / qzh. Where qzh is
+    # too small for a finite reciprocal (a subnormal qz underflowed it to 0: a division by
+    # zero in the tick) the row is not cut at all: skipping is only a saving, and keeping
+    # voxels that cannot gain costs their visit, nothing else.
     qzh = qz * hz
     inv_qzh = 1.0 / qzh if abs(qzh) > 1e-300 else 0.0
     for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
@@ -132,7 +133,7 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                                 k_first = max(k_first, math.floor(k_cut) + 1)
                             elif inv_qzh < 0.0:
                                 k_last = min(k_last, math.ceil(k_cut) - 1)
-                            elif q_row <= 0.0:
+                            elif qz == 0.0 and q_row <= 0.0:
                                 continue
                         for k in range(k_first, k_last + 1):
                             old = swept[i, j, k]

@@ -392,8 +392,9 @@ class BoneEngine:
             if shared is not self._header:
                 self._header, self._header_at = shared, header_address(shared)
             write_begin(self._header_at)  # odd: voxels being written (SharedBone reads around)
-        # A tick that raises (an INTERNAL reply) must still close the seqlock: readers of the
-        # shared bone would otherwise wait on an odd counter for good.
+        # A tick that raises (an INTERNAL reply) must still close the seqlock, under a new
+        # version: readers of the shared bone would otherwise wait on an odd counter for good,
+        # and bricks it changed would be missing from deltas since the old version.
         try:
             rv = self._revolved
             if rv is not None:
@@ -413,6 +414,10 @@ class BoneEngine:
                     self._stamp, self.path.ring, self.path.meta, self.path.candidates)
             if removed:
                 g.version += 1
+        except BaseException:
+            if carve:  # it may have stamped bricks with the next version before it raised
+                g.version += 1
+            raise
         finally:
             if shared is not None and carve:
                 write_end(self._header_at, g.version)
