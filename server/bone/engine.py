@@ -404,14 +404,14 @@ class BoneEngine:
                     b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
                     b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v,
                     b.sin_theta_v, b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g,
-                    feed_g, omega,
-                    cutting, carve, g.density, g.swept, g.labels, self.materials.us,
-                    self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
-                    g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
-                    g.version + 1, self.shaft.radius_mm, self.shaft.length_mm,
-                    self.shaft.stiffness_n_mm3, self._removed_tick, self._removed_total, self.touch,
-                    self._touched, self._vert, self._acc, self.out, self.shaft_out, self._cache,
-                    self._stamp, self.path.ring, self.path.meta, self.path.candidates)
+                    feed_g, omega, cutting, carve, g.density, g.swept, g.labels,
+                    self.materials.us, self.materials.usk, self.materials.forbidden,
+                    g.brick_bone, g.brick_full, g.brick_version, self._brick_forbidden,
+                    g.spacing_mm, self._previous, g.version + 1, self.shaft.radius_mm,
+                    self.shaft.length_mm, self.shaft.stiffness_n_mm3, self._removed_tick,
+                    self._removed_total, self.touch, self._touched, self._vert, self._acc,
+                    self.out, self.shaft_out, self._cache, self._stamp, self.path.ring,
+                    self.path.meta, self.path.candidates)
             if removed:
                 g.version += 1
         except BaseException:

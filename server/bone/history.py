@@ -173,7 +173,8 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     cand[row, 4] = uy
     cand[row, 5] = uz
     cand[row, 6] = r
-    cand[row, 7] = 1.0 / l2 if l2 > 1e-300 else 0.0  # shorter: a point (1/l2 is finite)
+    # A segment shorter than ~1e-150 mm is a point: its 1/l2 would overflow.
+    cand[row, 7] = 1.0 / l2 if l2 > 1e-300 else 0.0
     return n + 1
 
 
