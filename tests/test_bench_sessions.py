@@ -12,6 +12,7 @@ from scheduling import FIFO_REASON, fifo_permitted
 
 from burrforce.server.bench import sessions as bench_sessions
 from burrforce.server.cli import main
+from burrforce.server.realtime import HOT_LOOP_PRIORITY
 
 REQUIRED = ("sessions", "workers", "sent", "answered", "lost", "late", "rtt_p50_us",
             "rtt_p99_us", "rtt_p999_us", "send_late_p99_us", "generator_cpu_pct",
@@ -107,7 +108,7 @@ def test_realtime_reaches_serve_and_the_generator(tmp_path, capsys):
     md = (tmp_path / "sessions.md").read_text()
     assert "--realtime)" in md and "| loops under SCHED_FIFO | 2 of 2 |" in md
     # The generator ran above the loops, and went back to the normal scheduler after.
-    assert row["generator_realtime"] is fifo_permitted(6)
+    assert row["generator_realtime"] is fifo_permitted(HOT_LOOP_PRIORITY + 1)
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
 
 
