@@ -33,6 +33,12 @@ def engine_for(grid: BoneGrid, **kwargs) -> BoneEngine:
     return BoneEngine(grid, shaft=ShaftParams(length_mm=0.0), **kwargs)
 
 
+def as_the_tick_reads(grid: BoneGrid) -> np.ndarray:
+    """The swept shares the tick reads, int16: bone's, and for air (density 0) only whether a
+    burr reached it (0 or 1): air is marked 255 at once where any coverage reaches it."""
+    return np.where(grid.density > 0, grid.swept, np.minimum(grid.swept, 1)).astype(np.int16)
+
+
 def cap_volume(radius: float, depth: float) -> float:
     return math.pi * depth * depth * (3.0 * radius - depth) / 3.0
 
@@ -217,7 +223,8 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     """The carve skips voxels closer to the last tick's centre than to this one: the bone it
     leaves must be what carving every covered voxel from scratch each tick leaves, up to one
     coverage quantum (a voxel's coverage is not exactly monotone in its distance from the
-    burr, so the half-space can miss a 1/255 gain)."""
+    burr, so the half-space can miss a 1/255 gain), and the air it marks reached the same,
+    but for air voxels such a quantum would have reached."""
     grids = [small_block(0.2), small_block(0.2)]
     engines = [engine_for(g) for g in grids]
     centre = np.array([4.0, 4.0, 2.0 - depth])
@@ -227,7 +234,7 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
             if n == 1:
                 engine._previous[:] = np.nan  # no previous position: nothing is skipped
             engine.step(centre, AXIS, STILL, RPM)
-    diff = grids[1].swept.astype(np.int16) - grids[0].swept.astype(np.int16)
+    diff = as_the_tick_reads(grids[1]) - as_the_tick_reads(grids[0])
     assert diff.min() >= 0  # skipping never carves more
     assert diff.max() <= 1
     assert np.count_nonzero(diff) <= 8
@@ -256,8 +263,58 @@ def test_a_step_of_almost_nothing_along_z_carves_as_from_scratch(dx, dz):
             assert not removed and np.array_equal(engine.grid.swept, swept)
         else:
             assert removed
-    diff = grids[1].swept.astype(np.int16) - grids[0].swept.astype(np.int16)
+    diff = as_the_tick_reads(grids[1]) - as_the_tick_reads(grids[0])
     assert 0 <= diff.min() and diff.max() <= 1 and np.count_nonzero(diff) <= 8
+
+
+def test_air_keeps_only_whether_a_burr_reached_it():
+    """Air (original density 0) is marked swept through (255) the first time a burr covers
+    any of it, so the carve does not cover it again every tick the burr passes: the air
+    marked is exactly the air the burr's coverage reaches in bricks that hold bone (the
+    carve skips the others), and the bone is carved as in a block without air (every voxel
+    bone)."""
+    grid = small_block()
+    solid = small_block()
+    solid.density[:] = 255
+    solid.recount()
+    with_bone = grid.brick_bone > 0
+    for g in (grid, solid):
+        engine = engine_for(g)
+        for x in (3.0, 3.05, 3.4):
+            engine.step((x, 4.0, 1.2), AXIS, (3.0, 0.0, 0.0), RPM)
+    brick_of = np.ix_(*(np.arange(n) // BRICK for n in grid.shape))
+    air = (grid.density == 0) & with_bone[brick_of]
+    assert not (grid.swept[(grid.density == 0) & ~with_bone[brick_of]]).any()
+    assert set(np.unique(grid.swept[air]).tolist()) == {0, 255}
+    assert np.array_equal(grid.swept[air] == 255, solid.swept[air] > 0)
+    bone = grid.density > 0
+    assert np.array_equal(grid.swept[bone], solid.swept[bone])
+    carved = grid.swept[bone]
+    assert ((carved > 0) & (carved < 255)).any() and (carved == 255).any()
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_the_tick_reads_of_air_only_whether_a_burr_reached_it(seed):
+    """Forces, removal and the bone's carving read of an air voxel only whether a burr has
+    reached it: air reached holding any share (as a carve that tracked air's coverage left
+    it) gives the same tick, bit for bit, as air marked swept through."""
+    engines = [engine_for(small_block(), n_theta=12) for _ in range(2)]
+    for engine in engines:
+        for n in range(6):  # a plunge, then a groove along x
+            centre = (3.0 + 0.02 * max(n - 2, 0), 4.0, 2.0 - 0.2 * min(n, 2))
+            engine.step(centre, AXIS, (20.0, 0.0, -5.0), RPM)
+    g = engines[1].grid
+    reached = (g.density == 0) & (g.swept > 0)
+    assert reached.any()
+    g.swept[reached] = np.random.default_rng(seed).integers(1, 256, np.count_nonzero(reached))
+    outs = []
+    for engine in engines:
+        result = engine.step((3.1, 4.0, 1.6), AXIS, (20.0, 0.0, 0.0), RPM)
+        outs.append((engine.out.copy(), result.removed_mm3,
+                     np.where(engine.grid.density > 0, engine.grid.swept, 0)))
+    assert np.array_equal(outs[0][0], outs[1][0])
+    assert outs[0][1] == outs[1][1] > 0.0
+    assert np.array_equal(outs[0][2], outs[1][2])
 
 
 @given(st.lists(st.floats(0.0, 1e9), max_size=256), st.integers(0, 2**32 - 1))

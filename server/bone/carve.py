@@ -154,11 +154,17 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                                     touched[lab, 1] = i * hx
                                     touched[lab, 2] = j * hy
                                     touched[lab, 3] = k * hz
-                            if not carve or cq <= old:
+                            if not carve:
+                                continue
+                            if d == 0:
+                                # Air keeps only whether a burr reached it (what the force's
+                                # path gate reads): marked swept through at once, it is not
+                                # covered again every tick the burr passes.
+                                swept[i, j, k] = 255
+                                continue
+                            if cq <= old:
                                 continue
                             swept[i, j, k] = cq
-                            if d == 0:
-                                continue
                             removed[labels[i, j, k]] += float(d) * float(cq - old)
                             brick_changed = True
                             if old == 0 and d == 255:

@@ -34,7 +34,8 @@ VOLUME_MEDIA_TYPES: dict[str, tuple[str, str]] = {
 VOLUME_CONTENTS: dict[str, str] = {
     "remaining": "bone left per voxel, 0-255 (density x (255 - swept) / 255, rounded)",
     "labels": "material label per voxel (0 = empty space)",
-    "swept": "fraction of each voxel swept by the burr, 0-255",
+    "swept": ("fraction of each voxel swept by the burr, 0-255 (air, where the original "
+              "density is 0: 255 once a burr has reached it)"),
     "density": "original partial-volume bone density per voxel, 0-255 (before carving)",
 }
 #: zlib level for NRRD's gzip encoding. On the temporal phantom at 0.1 mm (38 M voxels) level
