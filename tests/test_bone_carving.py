@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from burrforce.server.bone import (
@@ -18,6 +18,7 @@ from burrforce.server.bone import (
     workpiece_block,
 )
 from burrforce.server.bone.bricks import BRICK
+from burrforce.server.model.shapes import Barrel, Burr
 
 RPM = 60000.0
 AXIS = (0.0, 0.0, 1.0)
@@ -267,12 +268,17 @@ def test_a_step_of_almost_nothing_along_z_carves_as_from_scratch(dx, dz):
     assert 0 <= diff.min() and diff.max() <= 1 and np.count_nonzero(diff) <= 8
 
 
-def test_air_keeps_only_whether_a_burr_reached_it():
+#: A burr of revolution: every burr but the round abrasive one carves with ``carve_revolved``.
+BARREL = Burr(Barrel(1.5, 1.0, 4.0))
+
+
+@pytest.mark.parametrize("burr", [None, BARREL], ids=["sphere", "barrel"])
+def test_air_keeps_only_whether_a_burr_reached_it(burr):
     """Air (original density 0) is marked swept through (255) the first time a burr covers
     any of it, so the carve does not cover it again every tick the burr passes: the air
     marked is exactly the air the burr's coverage reaches in bricks that hold bone (the
     carve skips the others), and the bone is carved as in a block without air (every voxel
-    bone)."""
+    bone). For the round abrasive burr's carve and for a burr of revolution's."""
     grid = small_block()
     solid = small_block()
     solid.density[:] = 255
@@ -280,6 +286,8 @@ def test_air_keeps_only_whether_a_burr_reached_it():
     with_bone = grid.brick_bone > 0
     for g in (grid, solid):
         engine = engine_for(g)
+        if burr is not None:
+            engine.set_burr(burr)
         for x in (3.0, 3.05, 3.4):
             engine.step((x, 4.0, 1.2), AXIS, (3.0, 0.0, 0.0), RPM)
     brick_of = np.ix_(*(np.arange(n) // BRICK for n in grid.shape))
@@ -293,13 +301,18 @@ def test_air_keeps_only_whether_a_burr_reached_it():
     assert ((carved > 0) & (carved < 255)).any() and (carved == 255).any()
 
 
-@given(st.integers(0, 2**32 - 1))
-def test_the_tick_reads_of_air_only_whether_a_burr_reached_it(seed):
+@pytest.mark.parametrize("burr", [None, BARREL], ids=["sphere", "barrel"])
+@settings(max_examples=10)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_the_tick_reads_of_air_only_whether_a_burr_reached_it(burr, seed):
     """Forces, removal and the bone's carving read of an air voxel only whether a burr has
     reached it: air reached holding any share (as a carve that tracked air's coverage left
-    it) gives the same tick, bit for bit, as air marked swept through."""
+    it) gives the same tick, bit for bit, as air marked swept through, and marks the same
+    air."""
     engines = [engine_for(small_block(), n_theta=12) for _ in range(2)]
     for engine in engines:
+        if burr is not None:
+            engine.set_burr(burr)
         for n in range(6):  # a plunge, then a groove along x
             centre = (3.0 + 0.02 * max(n - 2, 0), 4.0, 2.0 - 0.2 * min(n, 2))
             engine.step(centre, AXIS, (20.0, 0.0, -5.0), RPM)
@@ -310,11 +323,16 @@ def test_the_tick_reads_of_air_only_whether_a_burr_reached_it(seed):
     outs = []
     for engine in engines:
         result = engine.step((3.1, 4.0, 1.6), AXIS, (20.0, 0.0, 0.0), RPM)
+        grid = engine.grid
         outs.append((engine.out.copy(), result.removed_mm3,
-                     np.where(engine.grid.density > 0, engine.grid.swept, 0)))
+                     np.where(grid.density > 0, grid.swept, 0),
+                     (grid.density == 0) & (grid.swept > 0)))
+    assert outs[0][0][0:3].any()  # a force
     assert np.array_equal(outs[0][0], outs[1][0])
     assert outs[0][1] == outs[1][1] > 0.0
     assert np.array_equal(outs[0][2], outs[1][2])
+    assert np.array_equal(outs[0][3], outs[1][3])
+    assert outs[0][3].sum() > reached.sum()  # this tick reached more air
 
 
 @given(st.lists(st.floats(0.0, 1e9), max_size=256), st.integers(0, 2**32 - 1))

@@ -22,7 +22,8 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                  removed, touch, touched, cache, tick):
     """Sweep the voxels a burr sphere covers (one call per tick).
 
-    Raises each covered voxel's ``swept`` to its coverage (never lowers it), adds the bone
+    Raises each covered voxel's ``swept`` to its coverage (never lowers it; air, density 0,
+    straight to 255: the force reads of air only whether a burr reached it), adds the bone
     this removed to ``removed[label]`` (units: density × swept steps, i.e. 255² per voxel
     volume), keeps the brick counts exact and stamps changed bricks with ``version_next``.
     With ``carve`` False nothing is written: the call only reports contact (a burr that is not

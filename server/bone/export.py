@@ -35,7 +35,7 @@ VOLUME_CONTENTS: dict[str, str] = {
     "remaining": "bone left per voxel, 0-255 (density x (255 - swept) / 255, rounded)",
     "labels": "material label per voxel (0 = empty space)",
     "swept": ("fraction of each voxel swept by the burr, 0-255 (air, where the original "
-              "density is 0: 255 once a burr has reached it)"),
+              "density is 0: 255 where a burr reached it near bone)"),
     "density": "original partial-volume bone density per voxel, 0-255 (before carving)",
 }
 #: zlib level for NRRD's gzip encoding. On the temporal phantom at 0.1 mm (38 M voxels) level
@@ -77,7 +77,8 @@ def write_volume(
         must get them elsewhere, e.g. from the bone's info.
     what : {"remaining", "labels", "swept", "density"}
         Which array: the bone left (``grid.remaining_density()``, 0–255), the material labels,
-        the swept fraction (0–255) or the original density (0–255). All uint8 (nx, ny, nz).
+        the swept fraction (0–255; air: 255 where a burr reached it) or the original density
+        (0–255). All uint8 (nx, ny, nz).
     compress : bool
         NRRD only: gzip encoding (``encoding: gzip``), else raw. Ignored for npy, which has
         no compression of its own (compress the HTTP response instead).

@@ -6,6 +6,9 @@ Each voxel keeps three bytes:
   bone). Carving never writes it.
 - ``swept``: how much of the voxel the spinning burr has swept so far, 0–255 — the largest
   coverage by any burr position while cutting. Carving only raises it (idempotent, exact).
+  Air (``density`` 0) keeps only whether a burr has reached it: 255 from the first coverage
+  on, where its brick still held bone (the carve skips bricks without bone); the force reads
+  no more of it.
 - ``labels``: material label (see :mod:`.materials`).
 
 The bone left in a voxel is ``density·(255 − swept)/255``. Keeping what the bone *was* apart
