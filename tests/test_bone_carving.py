@@ -224,8 +224,8 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     """The carve skips voxels closer to the last tick's centre than to this one: the bone it
     leaves must be what carving every covered voxel from scratch each tick leaves, up to one
     coverage quantum (a voxel's coverage is not exactly monotone in its distance from the
-    burr, so the half-space can miss a 1/255 gain), and the air it marks reached the same,
-    but for air voxels such a quantum would have reached."""
+    burr, so the half-space can miss a 1/255 gain), and marks the same air reached but for
+    air such a missed quantum would have reached (air compared as reached or not)."""
     grids = [small_block(0.2), small_block(0.2)]
     engines = [engine_for(g) for g in grids]
     centre = np.array([4.0, 4.0, 2.0 - depth])

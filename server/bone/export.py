@@ -77,8 +77,8 @@ def write_volume(
         must get them elsewhere, e.g. from the bone's info.
     what : {"remaining", "labels", "swept", "density"}
         Which array: the bone left (``grid.remaining_density()``, 0–255), the material labels,
-        the swept fraction (0–255; air: 255 where a burr reached it) or the original density
-        (0–255). All uint8 (nx, ny, nz).
+        the swept fraction (0–255; air: 255 where a burr reached it near bone) or the original
+        density (0–255). All uint8 (nx, ny, nz).
     compress : bool
         NRRD only: gzip encoding (``encoding: gzip``), else raw. Ignored for npy, which has
         no compression of its own (compress the HTTP response instead).
