@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from ..hot_kernel import hot_kernel
+from ..hot_kernel import hot_inline, hot_kernel
 from .bricks import BRICK, BRICK_SHIFT
 from .voxels import cache_origin, cached_coverage, sphere_reach, voxel_span
 
@@ -146,38 +146,50 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                                 hx, hy, hz, r_in2, r_out2)
                             if cq == 0:
                                 continue
-                            d = density[i, j, k]
-                            if d != 0 and forbidden[labels[i, j, k]] != 0:
-                                lab = labels[i, j, k]
-                                touch[TOUCH_FORBIDDEN] += 1.0
-                                if cq > touched[lab, 0]:
-                                    touched[lab, 0] = cq
-                                    touched[lab, 1] = i * hx
-                                    touched[lab, 2] = j * hy
-                                    touched[lab, 3] = k * hz
-                            if not carve:
-                                continue
-                            if d == 0:
-                                # Air keeps only whether a burr reached it (what the force's
-                                # path gate reads): marked swept through at once, it is not
-                                # covered again every tick the burr passes.
-                                swept[i, j, k] = 255
-                                continue
-                            if cq <= old:
-                                continue
-                            swept[i, j, k] = cq
-                            removed[labels[i, j, k]] += float(d) * float(cq - old)
-                            brick_changed = True
-                            if old == 0 and d == 255:
-                                brick_full[bi, bj, bk] -= 1
-                            if cq == 255:
-                                brick_bone[bi, bj, bk] -= 1
+                            if apply_coverage(density, swept, labels, forbidden, removed, touch,
+                                              touched, brick_full, brick_bone, bi, bj, bk, i, j,
+                                              k, hx, hy, hz, old, cq, carve):
+                                brick_changed = True
                 if brick_changed:
                     brick_version[bi, bj, bk] = version_next
                     touch[TOUCH_BRICKS] += 1.0
                     any_removed = True
     touch[TOUCH_VISITED] = visited
     return any_removed
+
+
+@hot_inline
+def apply_coverage(density, swept, labels, forbidden, removed, touch, touched, brick_full,
+                   brick_bone, bi, bj, bk, i, j, k, hx, hy, hz, old, cq, carve):
+    """One voxel's update by a burr covering ``cq`` (1–255) of it, shared by every burr's
+    carve: records contact with a forbidden label, raises ``swept`` from ``old`` (bone to the
+    coverage, with its removal and brick (bi, bj, bk)'s counts; air straight to 255) when
+    ``carve``. Returns True if bone was removed."""
+    d = density[i, j, k]
+    if d != 0 and forbidden[labels[i, j, k]] != 0:
+        lab = labels[i, j, k]
+        touch[TOUCH_FORBIDDEN] += 1.0
+        if cq > touched[lab, 0]:
+            touched[lab, 0] = cq
+            touched[lab, 1] = i * hx
+            touched[lab, 2] = j * hy
+            touched[lab, 3] = k * hz
+    if not carve:
+        return False
+    if d == 0:
+        # Air keeps only whether a burr reached it (what the force's path gate reads):
+        # marked swept through at once, it is not covered again every tick the burr passes.
+        swept[i, j, k] = 255
+        return False
+    if cq <= old:
+        return False
+    swept[i, j, k] = cq
+    removed[labels[i, j, k]] += float(d) * float(cq - old)
+    if old == 0 and d == 255:
+        brick_full[bi, bj, bk] -= 1
+    if cq == 255:
+        brick_bone[bi, bj, bk] -= 1
+    return True
 
 
 @hot_kernel

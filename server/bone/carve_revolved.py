@@ -17,7 +17,7 @@ from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
 from ..model.shapes import Arc, Burr
 from .bricks import BRICK, BRICK_SHIFT
-from .carve import N_TOUCH, TOUCH_BRICKS, TOUCH_FORBIDDEN, TOUCH_NEAR_BONE, TOUCH_VISITED
+from .carve import N_TOUCH, TOUCH_BRICKS, TOUCH_NEAR_BONE, TOUCH_VISITED, apply_coverage
 from .voxels import CACHE_SHIFT, cache_origin, plane_fraction, voxel_span
 
 # Layout of the float64 per-tick geometry vector (``fill_geometry``), length N_GEO.
@@ -433,32 +433,10 @@ def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, br
                                                           hy, hz)
                             if cq == 0:
                                 continue
-                            d = density[i, j, k]
-                            if d != 0 and forbidden[labels[i, j, k]] != 0:
-                                lab = labels[i, j, k]
-                                touch[TOUCH_FORBIDDEN] += 1.0
-                                if cq > touched[lab, 0]:
-                                    touched[lab, 0] = cq
-                                    touched[lab, 1] = i * hx
-                                    touched[lab, 2] = j * hy
-                                    touched[lab, 3] = k * hz
-                            if not carve:
-                                continue
-                            if d == 0:
-                                # Air keeps only whether a burr reached it (what the force's
-                                # path gate reads): marked swept through at once, it is not
-                                # covered again every tick the burr passes.
-                                swept[i, j, k] = 255
-                                continue
-                            if cq <= old:
-                                continue
-                            swept[i, j, k] = cq
-                            removed[labels[i, j, k]] += float(d) * float(cq - old)
-                            brick_changed = True
-                            if old == 0 and d == 255:
-                                brick_full[bi, bj, bk] -= 1
-                            if cq == 255:
-                                brick_bone[bi, bj, bk] -= 1
+                            if apply_coverage(density, swept, labels, forbidden, removed, touch,
+                                              touched, brick_full, brick_bone, bi, bj, bk, i, j,
+                                              k, hx, hy, hz, old, cq, carve):
+                                brick_changed = True
                 if brick_changed:
                     brick_version[bi, bj, bk] = version_next
                     touch[TOUCH_BRICKS] += 1.0
