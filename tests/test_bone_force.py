@@ -16,6 +16,7 @@ from burrforce.server.bone import (
     workpiece_block,
 )
 from burrforce.server.bone.carve import TOUCH_VISITED
+from burrforce.server.bone.history import BurrPath
 from burrforce.server.model import CuttingModel, CuttingParams, thesis_cases
 from burrforce.server.model.cases import CuttingCase
 from burrforce.server.model.reference import reference_case
@@ -247,3 +248,20 @@ def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
             in_bone += frac > 0.0
             assert vert[j, k, 0] == pytest.approx(frac, abs=1e-9)
     assert in_bone > 50
+
+
+def test_the_tick_follows_replaced_materials_and_path():
+    """The engine binds its tick to its tables once (``hot_kernel.DirectCall``): an object the
+    tables come from, replaced between ticks, must count from the next tick on, as in an engine
+    built with it."""
+    case = CuttingCase("parallel", 60.0)
+    engine, centre = steady_engine(case, ticks=60)
+    step = (centre, case.axis, case.feed_velocity_mm_s, case.rpm)
+    before = engine.step(*step, carve=False).cut.force_N
+    harder = engine.materials.copy()
+    harder.update(1, us_n_mm2=2.0 * harder[1].us_n_mm2)
+    engine.set_materials(harder)
+    assert engine.step(*step, carve=False).cut.force_N == pytest.approx(2.0 * before, rel=1e-12)
+    # A path that knows no cut: the groove's walls in front count as bone again.
+    engine.path = BurrPath(engine.path._bounds, carved_before=False)
+    assert np.linalg.norm(engine.step(*step, carve=False).cut.force_N) > np.linalg.norm(before)

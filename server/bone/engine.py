@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..hot_kernel import DirectCall
 from ..model.burr import DEFAULT_N_THETA, BurrGrid
 from ..model.cutting import (
     RPM_TO_RAD_S,
@@ -50,6 +51,9 @@ MAX_CACHE_ENTRIES = 1 << 24
 _kernels_loaded = False
 #: The stand-in burr ``warm_up`` compiles the revolved tick with (any non-round-abrasive one).
 _WARM_CUTTER = Fluted(n_flutes=6)
+#: What ``step_raw`` checks of its vectors before the direct call: float64, contiguous.
+_F64 = np.dtype(np.float64)
+_VEC_STRIDES = (8,)
 
 
 def load_kernels() -> None:
@@ -246,6 +250,8 @@ class BoneEngine:
         self._stamp = 0
         self._brick_forbidden = np.zeros(grid.brick_bone.shape, dtype=np.uint8)
         self._forbidden_key: tuple[int, int] | None = None
+        #: The round burr's tick bound to this engine's tables and buffers (``_bind_tick``).
+        self._bound: DirectCall | None = None
         #: The shared header the seqlock last wrote, and its address (``seqlock``).
         self._header: np.ndarray | None = None
         self._header_at = 0
@@ -400,18 +406,22 @@ class BoneEngine:
             if rv is not None:
                 removed = self._tick_revolved(rv, centre_g, axis_g, feed_g, omega, cutting, carve)
             else:
-                removed = bone_tick(
-                    b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
-                    b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v,
-                    b.sin_theta_v, b.cos_phi_v, b.sin_phi_v, p.radius_mm, centre_g, axis_g,
-                    feed_g, omega, cutting, carve, g.density, g.swept, g.labels,
-                    self.materials.us, self.materials.usk, self.materials.forbidden,
-                    g.brick_bone, g.brick_full, g.brick_version, self._brick_forbidden,
-                    g.spacing_mm, self._previous, g.version + 1, self.shaft.radius_mm,
-                    self.shaft.length_mm, self.shaft.stiffness_n_mm3, self._removed_tick,
-                    self._removed_total, self.touch, self._touched, self._vert, self._acc,
-                    self.out, self.shaft_out, self._cache, self._stamp, self.path.ring,
-                    self.path.meta, self.path.candidates)
+                bound = self._bound
+                if bound is None:
+                    bound = self._bind_tick()
+                o = bound.owners  # as _owners(), compared by identity, not by value
+                if (o[0] is not b or o[1] is not p or o[2] is not self.shaft
+                        or o[3] is not self.materials or o[4] is not self._brick_forbidden
+                        or o[5] is not self.path):
+                    bound = self._bind_tick()
+                if (centre_g.dtype is _F64 and axis_g.dtype is _F64 and feed_g.dtype is _F64
+                        and centre_g.strides == _VEC_STRIDES and axis_g.strides == _VEC_STRIDES
+                        and feed_g.strides == _VEC_STRIDES):
+                    removed = bound.call(centre_g, axis_g, feed_g, omega, cutting, carve,
+                                         g.version + 1, self._stamp)
+                else:  # not the bound types: numba's dispatch (and a compile) sorts it out
+                    removed = bone_tick(*bound.fixed, centre_g, axis_g, feed_g, omega, cutting,
+                                        carve, g.version + 1, self._stamp)
             if removed:
                 g.version += 1
         except BaseException:
@@ -423,6 +433,38 @@ class BoneEngine:
                 write_end(self._header_at, g.version)
         self.ticks += 1
         return removed
+
+    def _owners(self) -> tuple:
+        """The objects the bound tick's fixed arguments come from (``_bind_tick``)."""
+        return (self.burr, self._params, self.shaft, self.materials, self._brick_forbidden,
+                self.path)
+
+    def _bind_tick(self) -> DirectCall:
+        """Bind the round burr's tick to this engine's tables and buffers (``DirectCall``):
+        again whenever one of the objects they come from is replaced (the burr grid, the
+        params and their coverage cache, the shaft, the materials, the forbidden bricks, the
+        path). The grid's arrays are bound for the engine's life: write into them, never
+        rebind them."""
+        b = self.burr
+        g = self.grid
+        p = self._params
+        m = self.materials
+        path = self.path
+        fixed = (b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
+                 b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v,
+                 b.sin_theta_v, b.cos_phi_v, b.sin_phi_v, p.radius_mm, g.density, g.swept,
+                 g.labels, m.us, m.usk, m.forbidden, g.brick_bone, g.brick_full,
+                 g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
+                 self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
+                 self._removed_tick, self._removed_total, self.touch, self._touched, self._vert,
+                 self._acc, self.out, self.shaft_out, self._cache, path.ring, path.meta,
+                 path.candidates)
+        # The tail's types: what step_raw checks before each direct call.
+        tail = (np.zeros(3), np.zeros(3), np.zeros(3), 0.0, True, True, 0, 0)
+        bound = DirectCall(bone_tick, fixed, tail)
+        bound.owners = self._owners()
+        self._bound = bound
+        return bound
 
     def _tick_revolved(self, rv: RevolvedTables, centre_g: np.ndarray, axis_g: np.ndarray,
                        feed_g: np.ndarray, omega: float, cutting: bool, carve: bool) -> bool:

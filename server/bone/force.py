@@ -117,8 +117,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                                swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
                                hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
                                half_p)
-    # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled.
-    # Pass 1c: the unneeded ones read as no bone.
+    # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled;
+    # pass 1c: the unneeded ones read as no bone.
     fill_uniform_fine(vert, n_theta, n_phi)
     for j in range(n_theta + 1):
         for k in range(n_phi):
@@ -127,7 +127,6 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                            swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis, hx,
                            hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t, half_p)
-    clear_unneeded(vert, n_theta + 1, n_phi)
     # Outward surface normal: from the density gradient where the bone's surface crosses the
     # burr; failing that, against the mean normal of the elements in bone.
     gsx = 0.0
@@ -308,10 +307,11 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
 
 @hot_kernel
 def fill_uniform_fine(vert, n_rows, n_phi):
-    """Pass 1b of the corner sampling, before any fine corner is sampled: a fine corner still
-    PENDING whose coarse cell holds uniform bone (all of its corners sampled and identical)
-    takes their value; the others stay PENDING, to be sampled. The checks read coarse corners
-    only, so filling all first and sampling the rest after gives the same corners.
+    """Passes 1b and 1c of the corner sampling, before any fine corner is sampled: a fine
+    corner still PENDING whose coarse cell holds uniform bone (all of its corners sampled and
+    identical) takes their value; the others stay PENDING, to be sampled. Every UNNEEDED
+    corner reads as no bone. The checks read coarse corners only, and take UNNEEDED and no
+    bone alike, so filling all first and sampling the rest after gives the same corners.
 
     Args:
         vert: float64 (n_rows + 1, n_phi, 3) corner samples (``mark_needed``), the coarse
@@ -322,7 +322,13 @@ def fill_uniform_fine(vert, n_rows, n_phi):
         jm = j - 1 if fine_row else j
         jp = j + 1 if fine_row else j
         for k in range(n_phi):
-            if vert[j, k, 0] != PENDING:
+            v = vert[j, k, 0]
+            if v == UNNEEDED:
+                vert[j, k, 0] = 0.0
+                vert[j, k, 1] = 0.0
+                vert[j, k, 2] = 0.0
+                continue
+            if v != PENDING:
                 continue
             if (k & 1) == 1:
                 km = k - 1
@@ -345,14 +351,3 @@ def fill_uniform_fine(vert, n_rows, n_phi):
                 vert[j, k, 0] = g
                 vert[j, k, 1] = vert[jm, km, 1]
                 vert[j, k, 2] = vert[jm, km, 2]
-
-
-@hot_kernel
-def clear_unneeded(vert, n_corner_rows, n_phi):
-    """Pass 1c: the corners no evaluated element needs read as no bone."""
-    for j in range(n_corner_rows):
-        for k in range(n_phi):
-            if vert[j, k, 0] == UNNEEDED:
-                vert[j, k, 0] = 0.0
-                vert[j, k, 1] = 0.0
-                vert[j, k, 2] = 0.0

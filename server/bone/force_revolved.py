@@ -23,7 +23,7 @@ from ..model.revolved import RevolvedGrid
 from ..model.shapes import Burr
 from .bricks import BRICK_MASK, BRICK_SHIFT
 from .carve_revolved import cached_revolved_coverage
-from .force import PENDING, clear_unneeded, fill_uniform_fine, mark_needed
+from .force import PENDING, fill_uniform_fine, mark_needed
 from .voxels import _gather_edge, _gather_interior, cache_origin
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
@@ -247,7 +247,8 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
                 _sample_corner(vert, j, k, rho, z, cos_pv[k], sin_pv[k], density, swept,
                                labels, us_tab, usk_tab, brick_bone, cx, cy, cz, geo, hx, hy,
                                hz, profile, cache, o0, o1, o2, tick)
-    # The rings on the axis were sampled whole above: no fine corners there.
+    # The rings on the axis were sampled whole above: no fine corners there. Unneeded corners
+    # read as no bone from here.
     fill_uniform_fine(vert, n_s, n_phi)
     for j in range(n_s + 1):
         for k in range(n_phi):
@@ -256,7 +257,6 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
             _sample_corner(vert, j, k, corners[0, j], corners[1, j], cos_pv[k], sin_pv[k],
                            density, swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz,
                            geo, hx, hy, hz, profile, cache, o0, o1, o2, tick)
-    clear_unneeded(vert, n_s + 1, n_phi)
     gsx = 0.0
     gsy = 0.0
     gsz = 0.0

@@ -78,7 +78,7 @@ HISTORY_EXACT = 1  # the path knows every cut within reach: it replaces the voxe
 HISTORY_PARTIAL = 2  # some cuts within reach are unknown: voxels' × path's
 
 
-@hot_kernel
+@hot_inline
 def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     """Share of a surface patch at p (grid frame, mm) outside every candidate capsule in
     ``cand`` (``history_candidates``), in [0, 1]. The patch is the rectangle spanned by its
@@ -96,7 +96,10 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     gy = 0.0
     gz = 0.0
     g_len = 1.0
-    for i in range(1, int(cand[0, CAND_COUNT]) + 1):
+    # Newest first (``history_candidates`` appends the open run last): the capsule the burr
+    # just left is the nearest to its surface, and with its distance as ``best`` the older
+    # ones are mostly dismissed before their square root.
+    for i in range(int(cand[0, CAND_COUNT]), 0, -1):
         wx = px - cand[i, 0]
         wy = py - cand[i, 1]
         wz = pz - cand[i, 2]

@@ -17,23 +17,23 @@ from .shaft import N_SHAFT, shaft_contact
 
 @hot_kernel
 def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-              sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, centre, axis, v_feed, omega,
-              cutting, carve, density, swept, labels, us_tab, usk_tab, forbidden, brick_bone,
-              brick_full, brick_version, brick_forbidden, spacing, previous, version_next,
-              shaft_radius, shaft_length, shaft_stiffness, removed, removed_total, touch,
-              touched, vert, acc, out, shaft_out, cache, tick, path_ring, path_meta,
-              path_cand):
+              sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, density, swept, labels, us_tab,
+              usk_tab, forbidden, brick_bone, brick_full, brick_version, brick_forbidden,
+              spacing, previous, shaft_radius, shaft_length, shaft_stiffness, removed,
+              removed_total, touch, touched, vert, acc, out, shaft_out, cache, path_ring,
+              path_meta, path_cand, centre, axis, v_feed, omega, cutting, carve, version_next,
+              tick):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft, then
     extend the burr's path (``history``: ``path_ring``, ``path_meta``, and ``path_cand`` for
     this tick's nearby capsules) with this tick's position if it carved, and keep that
     position in ``previous`` for the next tick's carve.
 
-    All vectors are in the grid frame; ``axis`` is the unit tool axis. A burr with no bone
-    brick within reach skips the force stage entirely: far from bone a tick costs a few brick
-    lookups. See ``carve_sphere``,
-    ``cut_voxels`` and ``shaft_contact`` for the arguments; ``removed`` receives this tick's
-    removal per label and is added to ``removed_total`` (both float64 (256,), units of 255²
-    voxel volumes).
+    The arguments that change every tick come last (from ``centre``): the engine binds the
+    others once (``hot_kernel.DirectCall``). All vectors are in the grid frame; ``axis`` is
+    the unit tool axis. A burr with no bone brick within reach skips the force stage entirely:
+    far from bone a tick costs a few brick lookups. See ``carve_sphere``, ``cut_voxels`` and
+    ``shaft_contact`` for the arguments; ``removed`` receives this tick's removal per label
+    and is added to ``removed_total`` (both float64 (256,), units of 255² voxel volumes).
 
     Returns:
         True if bone was removed (the caller then bumps the bone version).
