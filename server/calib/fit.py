@@ -219,10 +219,14 @@ def fieller(t1: float, t2: float, cov: np.ndarray, t: float) -> tuple[tuple[floa
     if qa <= 0.0:
         return (-math.inf, math.inf), False
     # With qa > 0 the discriminant is ≥ 0 in exact arithmetic (the estimate itself lies in the
-    # set); rounding can push it a hair below zero on nearly noise-free data.
+    # set); rounding can push it a hair below zero on nearly noise-free data, and leave the
+    # estimate an ulp outside the interval that is then almost a point: it is kept inside.
     disc = max(qb * qb - 4.0 * qa * qc, 0.0)
     root = math.sqrt(disc)
-    return (float((-qb - root) / (2.0 * qa)), float((-qb + root) / (2.0 * qa))), True
+    rho = t2 / t1
+    lo = min(float((-qb - root) / (2.0 * qa)), rho)
+    hi = max(float((-qb + root) / (2.0 * qa)), rho)
+    return (float(lo), float(hi)), True
 
 
 def _stack(rows: Sequence[CaseRow], sens: Sensitivities, columns: list[int]
