@@ -65,10 +65,12 @@ class DirectCall:
     Args:
         kernel: a ``hot_kernel``.  fixed: its leading arguments.
         example_tail: values of the types its trailing arguments will have on every call.
+        owners: the objects ``fixed`` was taken from, kept for the caller to check by identity.
     """
 
-    def __init__(self, kernel, fixed: tuple, example_tail: tuple) -> None:
+    def __init__(self, kernel, fixed: tuple, example_tail: tuple, owners: tuple = ()) -> None:
         signature = tuple(kernel.typeof_pyval(a) for a in (*fixed, *example_tail))
         #: Call with the trailing arguments only (C-level: no Python frame per call).
         self.call = functools.partial(kernel.compile(signature), *fixed)
         self.fixed = fixed
+        self.owners = owners

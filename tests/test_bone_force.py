@@ -263,5 +263,7 @@ def test_the_tick_follows_replaced_materials_and_path():
     engine.set_materials(harder)
     assert engine.step(*step, carve=False).cut.force_N == pytest.approx(2.0 * before, rel=1e-12)
     # A path that knows no cut: the groove's walls in front count as bone again.
-    engine.path = BurrPath(engine.path._bounds, carved_before=False)
+    spacing = engine.grid.spacing_mm
+    engine.path = BurrPath((-0.5 * spacing, (np.asarray(engine.grid.shape) - 0.5) * spacing),
+                           carved_before=False)
     assert np.linalg.norm(engine.step(*step, carve=False).cut.force_N) > np.linalg.norm(before)

@@ -461,8 +461,7 @@ class BoneEngine:
                  path.candidates)
         # The tail's types: what step_raw checks before each direct call.
         tail = (np.zeros(3), np.zeros(3), np.zeros(3), 0.0, True, True, 0, 0)
-        bound = DirectCall(bone_tick, fixed, tail)
-        bound.owners = self._owners()
+        bound = DirectCall(bone_tick, fixed, tail, self._owners())
         self._bound = bound
         return bound
 
