@@ -258,10 +258,13 @@ def test_the_tick_follows_replaced_materials_and_path():
     engine, centre = steady_engine(case, ticks=60)
     step = (centre, case.axis, case.feed_velocity_mm_s, case.rpm)
     before = engine.step(*step, carve=False).cut.force_N
+    entry = engine._bound.entry
     harder = engine.materials.copy()
     harder.update(1, us_n_mm2=2.0 * harder[1].us_n_mm2)
     engine.set_materials(harder)
     assert engine.step(*step, carve=False).cut.force_N == pytest.approx(2.0 * before, rel=1e-12)
+    # Only the new table's arrays were typed again; the specialization is the same.
+    assert engine._bound.entry is entry and engine._bound.fixed[18] is harder.us
     # A path that knows no cut: the groove's walls in front count as bone again.
     spacing = engine.grid.spacing_mm
     engine.path = BurrPath((-0.5 * spacing, (np.asarray(engine.grid.shape) - 0.5) * spacing),

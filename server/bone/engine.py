@@ -461,7 +461,7 @@ class BoneEngine:
                  path.candidates)
         # The tail's types: what step_raw checks before each direct call.
         tail = (np.zeros(3), np.zeros(3), np.zeros(3), 0.0, True, True, 0, 0)
-        bound = DirectCall(bone_tick, fixed, tail, self._owners())
+        bound = DirectCall(bone_tick, fixed, tail, self._owners(), previous=self._bound)
         self._bound = bound
         return bound
 
