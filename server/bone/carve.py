@@ -117,8 +117,8 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                 inside = fx * fx + fy * fy + fz * fz <= r_in2
                 brick_changed = False
                 for i in range(a0, a1 + 1):
-                    # A slab of rows wholly closer to ``previous`` is skipped at once (in a
-                    # straight groove, half the rows the burr reaches).
+                    # A slab of rows wholly closer to ``previous`` is skipped at once, not row
+                    # by row (the brick test above already drops most of them).
                     if skip_old and (qx * i * hx + max(qy * b0 * hy, qy * b1 * hy)
                                      + max(qz * c0 * hz, qz * c1 * hz)) <= q0:
                         continue

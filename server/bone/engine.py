@@ -409,7 +409,9 @@ class BoneEngine:
                 bound = self._bound
                 if bound is None:
                     bound = self._bind_tick()
-                o = bound.owners  # as _owners(), compared by identity, not by value
+                # As _owners(), compared by identity, not by value; spelled out because a
+                # loop over the pairs costs about 1 µs a tick.
+                o = bound.owners
                 if (o[0] is not b or o[1] is not p or o[2] is not self.shaft
                         or o[3] is not self.materials or o[4] is not self._brick_forbidden
                         or o[5] is not self.path):

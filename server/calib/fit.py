@@ -224,8 +224,8 @@ def fieller(t1: float, t2: float, cov: np.ndarray, t: float) -> tuple[tuple[floa
     disc = max(qb * qb - 4.0 * qa * qc, 0.0)
     root = math.sqrt(disc)
     rho = t2 / t1
-    lo = min(float((-qb - root) / (2.0 * qa)), rho)
-    hi = max(float((-qb + root) / (2.0 * qa)), rho)
+    lo = min((-qb - root) / (2.0 * qa), rho)
+    hi = max((-qb + root) / (2.0 * qa), rho)
     return (float(lo), float(hi)), True
 
 
