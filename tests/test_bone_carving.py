@@ -242,6 +242,30 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     assert np.count_nonzero(grids[0].swept) > 0
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(-0.05, 0.05), st.floats(-0.05, 0.05),
+                          st.floats(-0.05, 0.05)), min_size=2, max_size=8),
+       st.floats(0.0, 1.0))
+def test_bone_inside_where_the_burr_last_carved_is_swept_through(steps, depth):
+    """What the carve's row skip rests on: every voxel of bone whose centre lies inside the
+    inner sphere (wholly covered) of the burr where it last carved is swept through, however
+    the rows and voxels closer to the carve before it were skipped."""
+    grid = small_block(0.2)
+    engine = engine_for(grid)
+    centre = np.array([4.0, 4.0, 2.0 - depth])
+    h = grid.spacing_mm
+    idx = np.indices(grid.density.shape).reshape(3, -1).T * h
+    half_diag = 0.5 * float(np.linalg.norm(h))
+    r_in = engine.params.radius_mm - half_diag
+    for step in steps:
+        centre = centre + np.asarray(step)
+        engine.step(centre, AXIS, STILL, RPM)
+        last = engine._previous
+        inside = np.sum((idx - last) ** 2, axis=1) < r_in * r_in * (1.0 - 1e-9)
+        bone = grid.density.reshape(-1) > 0
+        assert np.all(grid.swept.reshape(-1)[inside & bone] == 255)
+
+
 @pytest.mark.parametrize(("dx", "dz"), [(0.0, 5e-324), (0.0, -5e-324), (0.0, 3e-309),
                                        (0.05, 5e-324), (0.05, 1e-295), (0.05, -1e-295)])
 def test_a_step_of_almost_nothing_along_z_carves_as_from_scratch(dx, dz):

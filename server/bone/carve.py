@@ -86,6 +86,14 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
     # voxels that cannot gain costs their visit, nothing else.
     qzh = qz * hz
     inv_qzh = 1.0 / qzh if abs(qzh) > 1e-300 else 0.0
+    # Every voxel inside ``previous``'s inner sphere was swept through (255) by that carve,
+    # directly or, where its half-space skipped the voxel, by an earlier one no farther from
+    # it. Shrunk by far more than the rounding of either test, so a voxel on the boundary is
+    # read as before.
+    px = previous[0] if has_prev else 0.0
+    py = previous[1] if has_prev else 0.0
+    pz = previous[2] if has_prev else 0.0
+    r_in2_prev = r_in2 * (1.0 - 1e-9)
     for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
         a0 = max(bi * BRICK, i_lo)
         a1 = min(bi * BRICK + BRICK - 1, i_hi)
@@ -153,6 +161,14 @@ def carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full, bric
                         reach_z = math.sqrt(rest)
                         k_first = max(k_from, math.ceil((cz - reach_z) * inv_hz))
                         k_last = min(k_to, math.floor((cz + reach_z) * inv_hz))
+                        if skip_old:
+                            # Both ends inside ``previous``'s inner sphere: so is the whole row
+                            # (convex), which that carve swept through. Its run of 255 is
+                            # skipped unread.
+                            rest_in = r_in2_prev - (i * hx - px) ** 2 - (j * hy - py) ** 2
+                            if ((k_first * hz - pz) ** 2 < rest_in
+                                    and (k_last * hz - pz) ** 2 < rest_in):
+                                continue
                         for k in range(k_first, k_last + 1):
                             # Unsigned: numba then omits the negative-index wraparound, 3 of the
                             # 12 instructions a swept-through voxel costs (thousands a tick).

@@ -118,11 +118,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                                hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
                                half_p)
     # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled;
-    # pass 1c: the unneeded ones read as no bone.
-    fill_uniform_fine(vert, n_theta, n_phi)
+    # the unneeded ones read as no bone.
     for j in range(n_theta + 1):
         for k in range(n_phi):
-            if vert[j, k, 0] != PENDING:
+            if not settle_fine(vert, j, k, n_theta, n_phi):
                 continue
             _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                            swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis, hx,
@@ -305,49 +304,47 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
             vert[j, k, 0] = PENDING if needed else UNNEEDED
 
 
-@hot_kernel
-def fill_uniform_fine(vert, n_rows, n_phi):
-    """Passes 1b and 1c of the corner sampling, before any fine corner is sampled: a fine
-    corner still PENDING whose coarse cell holds uniform bone (all of its corners sampled and
-    identical) takes their value; the others stay PENDING, to be sampled. Every UNNEEDED
-    corner reads as no bone. The checks read coarse corners only, and take UNNEEDED and no
-    bone alike, so filling all first and sampling the rest after gives the same corners.
+@hot_inline
+def settle_fine(vert, j, k, n_rows, n_phi):
+    """Pass 1b of the corner sampling for corner (j, k), once the coarse corners (even j and
+    k, the last ring, rings on the axis) are sampled: an UNNEEDED corner reads as no bone; a
+    fine corner still PENDING whose coarse cell holds uniform bone (all of its corners
+    sampled and identical) takes their value. Returns True if the corner is still PENDING:
+    sample it. The checks read coarse corners only, and take UNNEEDED and no bone alike, so
+    the corners may be settled and sampled one by one, in any order.
 
     Args:
-        vert: float64 (n_rows + 1, n_phi, 3) corner samples (``mark_needed``), the coarse
-            corners (even j and k, the last ring, rings on the axis) sampled.
+        vert: float64 (n_rows + 1, n_phi, 3) corner samples (``mark_needed``).
     """
-    for j in range(n_rows + 1):
-        fine_row = (j & 1) == 1 and j < n_rows
-        jm = j - 1 if fine_row else j
-        jp = j + 1 if fine_row else j
-        for k in range(n_phi):
-            v = vert[j, k, 0]
-            if v == UNNEEDED:
-                vert[j, k, 0] = 0.0
-                vert[j, k, 1] = 0.0
-                vert[j, k, 2] = 0.0
-                continue
-            if v != PENDING:
-                continue
-            if (k & 1) == 1:
-                km = k - 1
-                kp = k + 1 if k + 1 < n_phi else 0
-            else:
-                km = k
-                kp = k
-            # Air is sampled all the same: bone a coarse cell's corners miss can reach the
-            # stencil between them, and air samples are cheap.
-            g = vert[jm, km, 0]
-            uniform = (g > 0.0 and vert[jm, kp, 0] == g and vert[jp, km, 0] == g
-                       and vert[jp, kp, 0] == g)
-            if uniform:
-                u = vert[jm, km, 1]
-                w = vert[jm, km, 2]
-                uniform = (vert[jm, kp, 1] == u and vert[jp, km, 1] == u and vert[jp, kp, 1] == u
-                           and vert[jm, kp, 2] == w and vert[jp, km, 2] == w
-                           and vert[jp, kp, 2] == w)
-            if uniform:
-                vert[j, k, 0] = g
-                vert[j, k, 1] = vert[jm, km, 1]
-                vert[j, k, 2] = vert[jm, km, 2]
+    v = vert[j, k, 0]
+    if v == UNNEEDED:
+        vert[j, k, 0] = 0.0
+        vert[j, k, 1] = 0.0
+        vert[j, k, 2] = 0.0
+        return False
+    if v != PENDING:
+        return False
+    fine_row = (j & 1) == 1 and j < n_rows
+    jm = j - 1 if fine_row else j
+    jp = j + 1 if fine_row else j
+    if (k & 1) == 1:
+        km = k - 1
+        kp = k + 1 if k + 1 < n_phi else 0
+    else:
+        km = k
+        kp = k
+    # Air is sampled all the same: bone a coarse cell's corners miss can reach the stencil
+    # between them, and air samples are cheap.
+    g = vert[jm, km, 0]
+    if not (g > 0.0 and vert[jm, kp, 0] == g and vert[jp, km, 0] == g
+            and vert[jp, kp, 0] == g):
+        return True
+    u = vert[jm, km, 1]
+    w = vert[jm, km, 2]
+    if not (vert[jm, kp, 1] == u and vert[jp, km, 1] == u and vert[jp, kp, 1] == u
+            and vert[jm, kp, 2] == w and vert[jp, km, 2] == w and vert[jp, kp, 2] == w):
+        return True
+    vert[j, k, 0] = g
+    vert[j, k, 1] = u
+    vert[j, k, 2] = w
+    return False

@@ -23,7 +23,7 @@ from ..model.revolved import RevolvedGrid
 from ..model.shapes import Burr
 from .bricks import BRICK_MASK, BRICK_SHIFT
 from .carve_revolved import cached_revolved_coverage
-from .force import PENDING, fill_uniform_fine, mark_needed
+from .force import PENDING, mark_needed, settle_fine
 from .voxels import _gather_edge, _gather_interior, cache_origin
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
@@ -249,10 +249,9 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
                                hz, profile, cache, o0, o1, o2, tick)
     # The rings on the axis were sampled whole above: no fine corners there. Unneeded corners
     # read as no bone from here.
-    fill_uniform_fine(vert, n_s, n_phi)
     for j in range(n_s + 1):
         for k in range(n_phi):
-            if vert[j, k, 0] != PENDING:
+            if not settle_fine(vert, j, k, n_s, n_phi):
                 continue
             _sample_corner(vert, j, k, corners[0, j], corners[1, j], cos_pv[k], sin_pv[k],
                            density, swept, labels, us_tab, usk_tab, brick_bone, cx, cy, cz,

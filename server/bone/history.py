@@ -90,6 +90,23 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     # candidates carry 1/|u|², the patch's reach is taken only once p is inside a capsule,
     # and the nearest wall's normal g is kept unnormalized (|g| = g_len), the share being
     # scale-free.
+    n = int(cand[0, CAND_COUNT])
+    # First, without a square root or a division: is the patch clear of every capsule (the
+    # burr's front, where most of its samples in bone lie)? Capsule i leaves the patch whole
+    # iff (q − r + ON)·q > |q·s1| + |q·s2| (q the offset from its axis; the test the loop
+    # below ends on, for its nearest capsule), i.e. a = q² − |q·s1| − |q·s2| > (r − ON)·q,
+    # squared. Clear of all, the nearest is clear too and the share is 1, as the loop finds.
+    clear = True
+    for i in range(n, 0, -1):
+        qx, qy, qz = _offset_from_axis(cand, i, px, py, pz)
+        a = (qx * qx + qy * qy + qz * qz - abs(qx * s1x + qy * s1y + qz * s1z)
+             - abs(qx * s2x + qy * s2y + qz * s2z))
+        rr = cand[i, 6] - ON_SURFACE_MM
+        if not (a > 0.0 and (rr <= 0.0 or a * a > rr * rr * (qx * qx + qy * qy + qz * qz))):
+            clear = False
+            break
+    if clear:
+        return 1.0
     patch = -1.0
     best = math.inf
     gx = 0.0
@@ -99,21 +116,8 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     # Newest first (``history_candidates`` appends the open run last): the capsule the burr
     # just left is the nearest to its surface, and with its distance as ``best`` the older
     # ones are mostly dismissed before their square root.
-    for i in range(int(cand[0, CAND_COUNT]), 0, -1):
-        wx = px - cand[i, 0]
-        wy = py - cand[i, 1]
-        wz = pz - cand[i, 2]
-        ux = cand[i, 3]
-        uy = cand[i, 4]
-        uz = cand[i, 5]
-        inv_l2 = cand[i, 7]
-        t = 0.0
-        if inv_l2 > 0.0:
-            t = (wx * ux + wy * uy + wz * uz) * inv_l2
-            t = min(max(t, 0.0), 1.0)
-        qx = wx - t * ux
-        qy = wy - t * uy
-        qz = wz - t * uz
+    for i in range(n, 0, -1):
+        qx, qy, qz = _offset_from_axis(cand, i, px, py, pz)
         q2 = qx * qx + qy * qy + qz * qz
         r = cand[i, 6]
         reach = r + best
@@ -139,6 +143,20 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     half_a = abs(gx * s1x + gy * s1y + gz * s1z)
     half_b = abs(gx * s2x + gy * s2y + gz * s2z)
     return box_fraction((best + ON_SURFACE_MM) * g_len, half_a, half_b)
+
+
+@hot_inline
+def _offset_from_axis(cand, i, px, py, pz):
+    """Offset of point p from candidate i's axis segment (its nearest point), mm. A point
+    candidate (1/|u|² stored as 0) has t = 0."""
+    wx = px - cand[i, 0]
+    wy = py - cand[i, 1]
+    wz = pz - cand[i, 2]
+    ux = cand[i, 3]
+    uy = cand[i, 4]
+    uz = cand[i, 5]
+    t = min(max((wx * ux + wy * uy + wz * uz) * cand[i, 7], 0.0), 1.0)
+    return wx - t * ux, wy - t * uy, wz - t * uz
 
 
 @hot_inline

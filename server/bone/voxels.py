@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
 from .bricks import BRICK_MASK, BRICK_SHIFT
@@ -137,7 +139,8 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
     if (i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz
             and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
             and (k0 & BRICK_MASK) != BRICK_MASK
-            and brick_bone[i0 >> BRICK_SHIFT, j0 >> BRICK_SHIFT, k0 >> BRICK_SHIFT] == 0):
+            and brick_bone[np.uint64(i0 >> BRICK_SHIFT), np.uint64(j0 >> BRICK_SHIFT),
+                           np.uint64(k0 >> BRICK_SHIFT)] == 0):
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     tx = fx - i0f
     ty = fy - j0f
@@ -165,20 +168,25 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
 def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
     """Trilinear original density (×255), its Us and Us·K weighted sums and its gradient (per
     voxel step) for a stencil inside the grid, unrolled: the hot path of every sample."""
-    i1 = i0 + 1
-    j1 = j0 + 1
-    k1 = k0 + 1
-    d000 = density[i0, j0, k0]
-    d001 = density[i0, j0, k1]
-    d010 = density[i0, j1, k0]
-    d011 = density[i0, j1, k1]
-    d100 = density[i1, j0, k0]
-    d101 = density[i1, j0, k1]
-    d110 = density[i1, j1, k0]
-    d111 = density[i1, j1, k1]
-    swept_any = (swept[i0, j0, k0] | swept[i0, j0, k1] | swept[i0, j1, k0] | swept[i0, j1, k1]
-                 | swept[i1, j0, k0] | swept[i1, j0, k1] | swept[i1, j1, k0]
-                 | swept[i1, j1, k1]) != 0
+    # Unsigned indices (the caller checked the stencil lies inside the grid): numba then
+    # omits the negative-index wraparound of each of the 24 loads.
+    a0 = np.uint64(i0)
+    b0 = np.uint64(j0)
+    c0 = np.uint64(k0)
+    a1 = np.uint64(i0 + 1)
+    b1 = np.uint64(j0 + 1)
+    c1 = np.uint64(k0 + 1)
+    d000 = density[a0, b0, c0]
+    d001 = density[a0, b0, c1]
+    d010 = density[a0, b1, c0]
+    d011 = density[a0, b1, c1]
+    d100 = density[a1, b0, c0]
+    d101 = density[a1, b0, c1]
+    d110 = density[a1, b1, c0]
+    d111 = density[a1, b1, c1]
+    swept_any = (swept[a0, b0, c0] | swept[a0, b0, c1] | swept[a0, b1, c0] | swept[a0, b1, c1]
+                 | swept[a1, b0, c0] | swept[a1, b0, c1] | swept[a1, b1, c0]
+                 | swept[a1, b1, c1]) != 0
     if (d000 | d001 | d010 | d011 | d100 | d101 | d110 | d111) == 0:
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, swept_any
     ux = 1.0 - tx
@@ -194,22 +202,22 @@ def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty
     r110 = tx * ty * uz * float(d110)
     r111 = tx * ty * tz * float(d111)
     bone = r000 + r001 + r010 + r011 + r100 + r101 + r110 + r111
-    l000 = labels[i0, j0, k0]
-    if (l000 == labels[i0, j0, k1] and l000 == labels[i0, j1, k0]
-            and l000 == labels[i0, j1, k1] and l000 == labels[i1, j0, k0]
-            and l000 == labels[i1, j0, k1] and l000 == labels[i1, j1, k0]
-            and l000 == labels[i1, j1, k1]):
+    l000 = labels[a0, b0, c0]
+    if (l000 == labels[a0, b0, c1] and l000 == labels[a0, b1, c0]
+            and l000 == labels[a0, b1, c1] and l000 == labels[a1, b0, c0]
+            and l000 == labels[a1, b0, c1] and l000 == labels[a1, b1, c0]
+            and l000 == labels[a1, b1, c1]):
         us = bone * us_tab[l000]
         usk = bone * usk_tab[l000]
     else:
-        us = (r000 * us_tab[l000] + r001 * us_tab[labels[i0, j0, k1]]
-              + r010 * us_tab[labels[i0, j1, k0]] + r011 * us_tab[labels[i0, j1, k1]]
-              + r100 * us_tab[labels[i1, j0, k0]] + r101 * us_tab[labels[i1, j0, k1]]
-              + r110 * us_tab[labels[i1, j1, k0]] + r111 * us_tab[labels[i1, j1, k1]])
-        usk = (r000 * usk_tab[l000] + r001 * usk_tab[labels[i0, j0, k1]]
-               + r010 * usk_tab[labels[i0, j1, k0]] + r011 * usk_tab[labels[i0, j1, k1]]
-               + r100 * usk_tab[labels[i1, j0, k0]] + r101 * usk_tab[labels[i1, j0, k1]]
-               + r110 * usk_tab[labels[i1, j1, k0]] + r111 * usk_tab[labels[i1, j1, k1]])
+        us = (r000 * us_tab[l000] + r001 * us_tab[labels[a0, b0, c1]]
+              + r010 * us_tab[labels[a0, b1, c0]] + r011 * us_tab[labels[a0, b1, c1]]
+              + r100 * us_tab[labels[a1, b0, c0]] + r101 * us_tab[labels[a1, b0, c1]]
+              + r110 * us_tab[labels[a1, b1, c0]] + r111 * us_tab[labels[a1, b1, c1]])
+        usk = (r000 * usk_tab[l000] + r001 * usk_tab[labels[a0, b0, c1]]
+               + r010 * usk_tab[labels[a0, b1, c0]] + r011 * usk_tab[labels[a0, b1, c1]]
+               + r100 * usk_tab[labels[a1, b0, c0]] + r101 * usk_tab[labels[a1, b0, c1]]
+               + r110 * usk_tab[labels[a1, b1, c0]] + r111 * usk_tab[labels[a1, b1, c1]])
     f000 = float(d000)
     f001 = float(d001)
     f010 = float(d010)

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ..hot_kernel import hot_kernel
+from ..hot_kernel import hot_inline, hot_kernel
 
 # Layout of the float64 result vector every material kernel fills (length N_OUT).
 OUT_FORCE = 0  # [0:3] force on the burr, world frame, N
@@ -89,7 +89,7 @@ def box_fraction(g0, half_a, half_b):
     return 1.0 - t * t / (8.0 * r)
 
 
-@hot_kernel
+@hot_inline
 def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, radius):
     """Add one element's cut to the tool-frame accumulator ``acc`` (shape (N_ACC,)).
 
