@@ -245,7 +245,7 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.tuples(st.floats(-0.05, 0.05), st.floats(-0.05, 0.05),
                           st.floats(-0.05, 0.05)), min_size=2, max_size=8),
-       st.floats(0.0, 1.0))
+       st.floats(0.5, 1.5))
 def test_bone_inside_where_the_burr_last_carved_is_swept_through(steps, depth):
     """What the carve's row skip rests on: every voxel of bone whose centre lies inside the
     inner sphere (wholly covered) of the burr where it last carved is swept through, however
@@ -263,6 +263,7 @@ def test_bone_inside_where_the_burr_last_carved_is_swept_through(steps, depth):
         last = engine._previous
         inside = np.sum((idx - last) ** 2, axis=1) < r_in * r_in * (1.0 - 1e-9)
         bone = grid.density.reshape(-1) > 0
+        assert np.any(inside & bone)  # 0.5 mm deep or more: bone is inside
         assert np.all(grid.swept.reshape(-1)[inside & bone] == 255)
 
 

@@ -53,55 +53,87 @@ def unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-@st.composite
-def patch_near_capsules(draw):
-    """A burr surface patch at p (half-sides s1, s2 tangent to the burr's sphere) and one to
-    three capsules of the burr's radius, their ends within a few patch sizes of the burr's
-    surface, as a groove's path is."""
-    centre = np.zeros(3)
-    n = np.array([draw(st.floats(-1, 1)) for _ in range(3)])
-    if np.linalg.norm(n) < 0.1:
-        n = np.array([0.0, 0.0, 1.0])
-    normal = unit(n)
-    p = centre + R_MM * normal
+def patch_at(normal: np.ndarray, s2_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The patch of the burr's sphere (centre 0, radius R) at ``normal``: its centre and its
+    half-sides, tangent to the sphere."""
+    p = R_MM * normal
     helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     t1 = unit(np.cross(normal, helper))
-    t2 = np.cross(normal, t1)
-    s1 = HALF_MM * t1
-    s2 = draw(st.floats(0.2, 1.0)) * HALF_MM * t2
+    return p, HALF_MM * t1, s2_scale * HALF_MM * np.cross(normal, t1)
+
+
+def vectors(draw) -> np.ndarray:
+    v = np.array([draw(st.floats(-1, 1)) for _ in range(3)])
+    return unit(v) if np.linalg.norm(v) > 0.1 else np.array([0.0, 0.0, 1.0])
+
+
+def sampled(p, s1, s2) -> np.ndarray:
+    """The patch sampled on a GRID × GRID lattice, (GRID², 3)."""
+    u, v = np.meshgrid(np.linspace(-1, 1, GRID), np.linspace(-1, 1, GRID))
+    return p + u.reshape(-1, 1) * s1 + v.reshape(-1, 1) * s2
+
+
+#: The walls curve over the patch by ~|s|²/r (a few 1e-4 mm): a sliver of that width is all
+#: the share's linearization can misplace.
+BEND_MM = (HALF_MM * 2) ** 2 / R_MM
+
+
+@st.composite
+def patch_across_one_wall(draw):
+    """A patch of the burr's surface and one capsule of the burr's radius (a stroke of its
+    path, or a point) whose wall passes within two patch sizes of the patch's centre, at any
+    angle to it: most examples have the wall crossing the patch."""
+    p, s1, s2 = patch_at(vectors(draw), draw(st.floats(0.2, 1.0)))
+    u = draw(st.floats(0.0, 1.0)) * vectors(draw)
+    # The capsule's axis passes R + offset from p, square to ``toward``: its wall lies
+    # ``offset`` from p (outside for offset > 0).
+    toward = vectors(draw)
+    u = u - (u @ toward) * toward
+    offset = draw(st.floats(-3 * HALF_MM, 3 * HALF_MM))
+    nearest = p + (R_MM + offset) * toward
+    return p, s1, s2, [(nearest - draw(st.floats(0.0, 1.0)) * u, u, R_MM)]
+
+
+@settings(max_examples=300, deadline=None)
+@given(patch_across_one_wall())
+def test_the_share_is_the_patch_outside_a_capsule(case):
+    """Against one capsule the share is the patch's part outside it, up to the sliver its
+    curvature bends and the lattice's step; exactly 1 wholly outside and 0 wholly inside."""
+    p, s1, s2, capsules = case
+    share = history_share(candidates(capsules), *p, *s1, *s2)
+    gaps = gap_mm(sampled(p, s1, s2), capsules)
+    outside = float(np.mean(gaps > 0.0))
+    sliver = float(np.mean(np.abs(gaps) < BEND_MM))
+    assert abs(share - outside) <= sliver + 2.5 / GRID
+    if gaps.min() > BEND_MM:
+        assert share == 1.0
+    if gaps.max() < -BEND_MM:
+        assert share == 0.0
+
+
+@st.composite
+def patch_near_a_path(draw):
+    """A patch of the burr's surface and one to three capsules of the burr's radius: its
+    earlier positions, the centre moved back by up to 0.9 mm, strokes up to 1 mm long."""
+    p, s1, s2 = patch_at(vectors(draw), draw(st.floats(0.2, 1.0)))
     capsules = []
     for _ in range(draw(st.integers(1, 3))):
-        # The burr's earlier positions: its centre moved back by up to a quarter radius.
-        back = np.array([draw(st.floats(-0.5, 0.5)) for _ in range(3)])
-        end = centre + back
-        length = draw(st.floats(0.0, 1.0))
-        direction = np.array([draw(st.floats(-1, 1)) for _ in range(3)])
-        u = length * unit(direction) if np.linalg.norm(direction) > 0.1 else np.zeros(3)
+        end = np.array([draw(st.floats(-0.5, 0.5)) for _ in range(3)])
+        u = draw(st.floats(0.0, 1.0)) * vectors(draw)
         capsules.append((end - u, u, R_MM))
     return p, s1, s2, capsules
 
 
 @settings(max_examples=300, deadline=None)
-@given(patch_near_capsules())
-def test_the_share_is_the_patch_outside_the_path(case):
+@given(patch_near_a_path())
+def test_a_patch_clear_of_the_whole_path_reads_exactly_one(case):
+    """The burr's front, outside every capsule of its path, reads exactly 1 (the share's first
+    pass, without square roots); anywhere else the share stays in [0, 1]."""
     p, s1, s2, capsules = case
     share = history_share(candidates(capsules), *p, *s1, *s2)
     assert 0.0 <= share <= 1.0
-    u, v = np.meshgrid(np.linspace(-1, 1, GRID), np.linspace(-1, 1, GRID))
-    points = p + u.reshape(-1, 1) * s1 + v.reshape(-1, 1) * s2
-    gaps = gap_mm(points, capsules)
-    # The walls curve over the patch by ~|s|²/2r (a few 1e-4 mm): a sliver of that width is
-    # all the linearization can misplace, plus the sampling's step.
-    bend = (HALF_MM * 2) ** 2 / R_MM
-    walls = [c for c in capsules if gap_mm(points, [c]).min() <= bend]
-    if len(walls) <= 1:  # where two walls cross the patch, only the nearer is linearized
-        outside = float(np.mean(gaps > 0.0))
-        sliver = np.mean(np.abs(gaps) < bend)
-        assert abs(share - outside) <= sliver + 2.5 / GRID
-    if gaps.min() > bend:
-        assert share == 1.0  # wholly outside: exactly 1, as the burr's front must read
-    if gaps.max() < -bend:
-        assert share == 0.0
+    if gap_mm(sampled(p, s1, s2), capsules).min() > BEND_MM:
+        assert share == 1.0
 
 
 def test_a_burr_standing_where_it_last_carved_finds_its_surface_uncut():
