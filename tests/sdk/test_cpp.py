@@ -201,8 +201,10 @@ def test_cpp_errors(cpp_bins, live_server):
     stall = got["stall"]  # a 25 ms stall from tick 100: ~24 ticks skipped, then 1 ms apart
     assert 15 <= stall["skipped"] <= 200 and stall["sent"] + stall["skipped"] == 300, stall
     assert stall["first_tick_after"] >= stall["stalled_at"] + 15, stall
-    # No burst: the tick after the jump waits for its own scheduled time (the gap to it is
-    # shorter than a period when the jumped-to tick itself left late).
+    # No burst: the next tick sent after the jump waits for its own scheduled time (the gap to
+    # it is shorter than a period when the jumped-to tick itself left late; on a loaded
+    # machine the tick right after the jump may be skipped as well).
+    assert stall["next_after"] > stall["first_tick_after"], stall
     assert stall["gap_after_us"] > 0 and stall["next_early_us"] <= 0, stall
     assert stall["replies"] >= 0.9 * stall["sent"], stall
     wk = got["streamer_wrong_key"]

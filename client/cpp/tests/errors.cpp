@@ -191,17 +191,17 @@ int main(int argc, char** argv) {
       uint64_t first_after = 0;
       for (uint64_t k = stalled_at + 1; k < 300 && !first_after; ++k)
         if (called_us[k] >= 0) first_after = k;
-      int64_t gap_us = first_after && first_after + 1 < 300 && called_us[first_after + 1] >= 0
-                           ? called_us[first_after + 1] - called_us[first_after]
-                           : -1;
+      // The next tick called after it (a loaded machine may skip that one too).
+      uint64_t next_after = 0;
+      for (uint64_t k = first_after + 1; first_after && k < 300 && !next_after; ++k)
+        if (called_us[k] >= 0) next_after = k;
+      int64_t gap_us = next_after ? called_us[next_after] - called_us[first_after] : -1;
       const Counters& c = st.counters();
       out << ", \"stall\": {\"sent\": " << c.sent.load()
           << ", \"skipped\": " << c.skipped_ticks.load()
           << ", \"stalled_at\": " << stalled_at << ", \"first_tick_after\": " << first_after
-          << ", \"gap_after_us\": " << gap_us << ", \"next_early_us\": "
-          << (first_after && first_after + 1 < 300 && called_us[first_after + 1] >= 0
-                  ? due_us[first_after + 1] - called_us[first_after + 1]
-                  : -1)
+          << ", \"next_after\": " << next_after << ", \"gap_after_us\": " << gap_us
+          << ", \"next_early_us\": " << (next_after ? due_us[next_after] - called_us[next_after] : -1)
           << ", \"replies\": " << c.replies.load() << "}";
     }
     {  // The Streamer with a wrong key: BAD_TAG notices counted, never a force.
