@@ -201,7 +201,8 @@ int main(int argc, char** argv) {
           << ", \"skipped\": " << c.skipped_ticks.load()
           << ", \"stalled_at\": " << stalled_at << ", \"first_tick_after\": " << first_after
           << ", \"next_after\": " << next_after << ", \"gap_after_us\": " << gap_us
-          << ", \"next_early_us\": " << (next_after ? due_us[next_after] - called_us[next_after] : -1)
+          << ", \"next_early_us\": "
+          << (next_after ? due_us[next_after] - called_us[next_after] : -1)
           << ", \"replies\": " << c.replies.load() << "}";
     }
     {  // The Streamer with a wrong key: BAD_TAG notices counted, never a force.
