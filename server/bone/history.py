@@ -146,31 +146,33 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
 
 
 @hot_inline
-def _offset_from_axis(cand, i, px, py, pz):
-    """Offset of point p from candidate i's axis segment (its nearest point), mm. A point
-    candidate (1/|u|² stored as 0) has t = 0."""
-    wx = px - cand[i, 0]
-    wy = py - cand[i, 1]
-    wz = pz - cand[i, 2]
-    ux = cand[i, 3]
-    uy = cand[i, 4]
-    uz = cand[i, 5]
-    t = min(max((wx * ux + wy * uy + wz * uz) * cand[i, 7], 0.0), 1.0)
+def _segment_offset(cx, cy, cz, ax, ay, az, ux, uy, uz, inv_l2):
+    """Offset of point c from its nearest point on the segment a → a + u, mm, given
+    1/|u|² (0 for a point: a segment shorter than ~1e-150 mm, whose 1/|u|² would overflow)."""
+    wx = cx - ax
+    wy = cy - ay
+    wz = cz - az
+    t = min(max((wx * ux + wy * uy + wz * uz) * inv_l2, 0.0), 1.0)
     return wx - t * ux, wy - t * uy, wz - t * uz
+
+
+@hot_inline
+def _inverse_length2(l2):
+    """1/|u|² as ``_segment_offset`` and the candidate rows take it."""
+    return 1.0 / l2 if l2 > 1e-300 else 0.0
+
+
+@hot_inline
+def _offset_from_axis(cand, i, px, py, pz):
+    """``_segment_offset`` of point p from candidate i's axis segment, mm."""
+    return _segment_offset(px, py, pz, cand[i, 0], cand[i, 1], cand[i, 2], cand[i, 3],
+                           cand[i, 4], cand[i, 5], cand[i, 7])
 
 
 @hot_inline
 def _segment_gap(cx, cy, cz, ax, ay, az, ux, uy, uz, l2):
     """Distance from point c to the segment a → a + u, mm."""
-    wx = cx - ax
-    wy = cy - ay
-    wz = cz - az
-    t = 0.0
-    if l2 > 0.0:
-        t = min(max((wx * ux + wy * uy + wz * uz) / l2, 0.0), 1.0)
-    qx = wx - t * ux
-    qy = wy - t * uy
-    qz = wz - t * uz
+    qx, qy, qz = _segment_offset(cx, cy, cz, ax, ay, az, ux, uy, uz, _inverse_length2(l2))
     return math.sqrt(qx * qx + qy * qy + qz * qz)
 
 
@@ -181,8 +183,9 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     ux = bx - ax
     uy = by - ay
     uz = bz - az
-    l2 = ux * ux + uy * uy + uz * uz
-    if _segment_gap(cx, cy, cz, ax, ay, az, ux, uy, uz, l2) >= reach + r:
+    inv_l2 = _inverse_length2(ux * ux + uy * uy + uz * uz)
+    qx, qy, qz = _segment_offset(cx, cy, cz, ax, ay, az, ux, uy, uz, inv_l2)
+    if qx * qx + qy * qy + qz * qz >= (reach + r) ** 2:
         return n
     if n + 1 >= cand.shape[0]:
         return -1
@@ -194,8 +197,7 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
     cand[row, 4] = uy
     cand[row, 5] = uz
     cand[row, 6] = r
-    # A segment shorter than ~1e-150 mm is a point: its 1/l2 would overflow.
-    cand[row, 7] = 1.0 / l2 if l2 > 1e-300 else 0.0
+    cand[row, 7] = inv_l2
     return n + 1
 
 
