@@ -1,8 +1,9 @@
 """The path's share of a surface patch (``history.history_share``) against the geometry it
 stands for: the share of a small patch outside a union of capsules, found by sampling the
 patch densely. Its answer of exactly 1 where the patch lies wholly outside every capsule comes
-from a test without square roots (the burr's front, most samples in bone); everywhere else
-from the nearest capsule's wall, linearized across the patch."""
+from a test without square roots, or before it from the tick's front test (two dot products a
+capsule, bounds set once a tick), which must agree with it exactly; everywhere else from the
+nearest capsule's wall, linearized across the patch."""
 
 from __future__ import annotations
 
@@ -11,11 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from burrforce.server.bone.history import (
+    CAND_COLS,
     CAND_COUNT,
     CAND_MODE,
     HISTORY_EXACT,
-    SEG_COLS,
+    _front_bounds,
     history_share,
+    in_front,
 )
 
 R_MM = 2.0
@@ -24,9 +27,12 @@ HALF_MM = 0.03
 GRID = 41
 
 
-def candidates(capsules: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
-    """The candidate array ``history_candidates`` fills: header, then a → a + u, r, 1/|u|²."""
-    cand = np.zeros((len(capsules) + 1, SEG_COLS))
+def candidates(capsules: list[tuple[np.ndarray, np.ndarray, float]],
+               front_patch_mm: float = -1.0) -> np.ndarray:
+    """The candidate array ``history_candidates`` fills: header, then a → a + u, r, 1/|u|²,
+    and the front test's bounds for a burr of radius R_MM centred at 0 whose patches reach
+    at most ``front_patch_mm`` (< 0: no front test)."""
+    cand = np.zeros((len(capsules) + 1, CAND_COLS))
     cand[0, CAND_COUNT] = len(capsules)
     cand[0, CAND_MODE] = HISTORY_EXACT
     for n, (a, u, r) in enumerate(capsules, start=1):
@@ -35,7 +41,17 @@ def candidates(capsules: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarr
         cand[n, 3:6] = u
         cand[n, 6] = r
         cand[n, 7] = 1.0 / l2 if l2 > 1e-300 else 0.0
+        _front_bounds(cand, n, 0.0, 0.0, 0.0, R_MM, front_patch_mm)
     return cand
+
+
+def shares(p, s1, s2, capsules) -> float:
+    """The share without the front test, once checked to be the same, to the last bit, with
+    it (bounds for this patch's reach)."""
+    plain = history_share(candidates(capsules), *p, *s1, *s2)
+    reach = float(np.linalg.norm(s1) + np.linalg.norm(s2))
+    assert history_share(candidates(capsules, reach), *p, *s1, *s2) == plain
+    return plain
 
 
 def gap_mm(points: np.ndarray, capsules) -> np.ndarray:
@@ -100,7 +116,7 @@ def test_the_share_is_the_patch_outside_a_capsule(case):
     """Against one capsule the share is the patch's part outside it, up to the sliver its
     curvature bends and the lattice's step; exactly 1 wholly outside and 0 wholly inside."""
     p, s1, s2, capsules = case
-    share = history_share(candidates(capsules), *p, *s1, *s2)
+    share = shares(p, s1, s2, capsules)
     gaps = gap_mm(sampled(p, s1, s2), capsules)
     outside = float(np.mean(gaps > 0.0))
     sliver = float(np.mean(np.abs(gaps) < BEND_MM))
@@ -130,7 +146,7 @@ def test_a_patch_clear_of_the_whole_path_reads_exactly_one(case):
     """The burr's front, outside every capsule of its path, reads exactly 1 (the share's first
     pass, without square roots); anywhere else the share stays in [0, 1]."""
     p, s1, s2, capsules = case
-    share = history_share(candidates(capsules), *p, *s1, *s2)
+    share = shares(p, s1, s2, capsules)
     assert 0.0 <= share <= 1.0
     if gap_mm(sampled(p, s1, s2), capsules).min() > BEND_MM:
         assert share == 1.0
@@ -144,7 +160,7 @@ def test_a_burr_standing_where_it_last_carved_finds_its_surface_uncut():
     s1 = HALF_MM * helper
     s2 = HALF_MM * np.cross(normal, helper)
     stroke = (np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), R_MM)
-    assert history_share(candidates([stroke]), *p, *s1, *s2) == 1.0
+    assert shares(p, s1, s2, [stroke]) == 1.0
     # Moved back into its own groove by 10 µm: the patch is now inside the stroke's capsule.
     inside = p - 0.01 * normal
     assert history_share(candidates([stroke]), *inside, *s1, *s2) == 0.0
@@ -153,3 +169,54 @@ def test_a_burr_standing_where_it_last_carved_finds_its_surface_uncut():
 def test_no_capsule_leaves_the_whole_patch():
     s = HALF_MM * np.eye(3)
     assert history_share(candidates([]), 0.0, 0.0, R_MM, *s[0], *s[1]) == 1.0
+
+
+@st.composite
+def burr_just_ahead_of_its_path(draw):
+    """The tick's case: a patch of the burr's surface and its path's last capsules, a run and
+    the tail to where it last carved, which lies 0.1 µm to 50 µm behind its centre; the run
+    bends away from the tail by up to ~10°, or is a point."""
+    p, s1, s2 = patch_at(vectors(draw), draw(st.floats(0.2, 1.0)))
+    back = -vectors(draw)
+    last = 10.0 ** draw(st.floats(-4.0, np.log10(0.05))) * back
+    tail_mm = draw(st.floats(0.0, 0.05))
+    joint = last + tail_mm * back
+    bend = unit(back + draw(st.floats(0.0, 0.2)) * vectors(draw))
+    run_mm = draw(st.sampled_from([0.0, 0.3, 3.0]))
+    capsules = [(joint + run_mm * bend, -run_mm * bend, R_MM), (joint, last - joint, R_MM)]
+    return p, s1, s2, capsules
+
+
+@settings(max_examples=500, deadline=None)
+@given(burr_just_ahead_of_its_path())
+def test_the_front_test_agrees_with_the_first_pass_next_to_the_path(case):
+    """Next to the capsules' walls, where the front test's bounds are tight (the centre a few
+    µm ahead of where it last carved), a patch it passes is one the first pass clears: the
+    share is the same with the front test as without, to the last bit."""
+    p, s1, s2, capsules = case
+    assert 0.0 <= shares(p, s1, s2, capsules) <= 1.0
+
+
+def test_the_front_test_passes_the_burrs_front_and_nothing_behind():
+    """A burr 3 µm ahead of where it last carved, at the end of a straight 3 mm stroke: the
+    front test passes most of the surface that faces the feed (it is what makes the share
+    cheap there), none of the surface behind, and every answer is the first pass's."""
+    feed = unit([1.0, 0.2, -0.1])
+    last = -0.003 * feed
+    joint = -0.02 * feed
+    capsules = [(joint - 3.0 * feed, 3.0 * feed, R_MM), (joint, last - joint, R_MM)]
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    k = np.arange(4000)
+    z = 1.0 - 2.0 * (k + 0.5) / len(k)
+    normals = np.column_stack([np.sqrt(1 - z * z) * np.cos(golden * k),
+                               np.sqrt(1 - z * z) * np.sin(golden * k), z])
+    ahead = []
+    for normal in normals:
+        p, s1, s2 = patch_at(normal, 1.0)
+        shares(p, s1, s2, capsules)
+        cand = candidates(capsules, float(np.linalg.norm(s1) + np.linalg.norm(s2)))
+        ahead.append(in_front(cand, len(capsules), *p))
+    ahead = np.array(ahead)
+    facing = normals @ feed
+    assert ahead[facing > 0.1].mean() > 0.95
+    assert not ahead[facing < 0.0].any()

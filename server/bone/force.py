@@ -91,16 +91,13 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     m2 = float(m * m)
     inv_m2 = 1.0 / m2  # the sub-element loop multiplies: divisions queue on one unit
     inv_feed = 1.0 / feed_speed if has_cut else 0.0
-    # Half-sides of a sub-element along θ and (per sin θ) along φ, mm: the patch the path's
-    # share is taken over (``history.history_share``).
-    half_t = 0.5 * radius * d_theta / m
-    half_p = 0.5 * radius * d_phi / m
+    half_t, half_p = patch_half_sides(radius, d_theta, d_phi, m)
     # Pass 1: sample the bone once at every element corner that an evaluated element needs,
     # in two levels: first the corners with even (j, k) (and the last ring), then the others
     # only where their coarse neighbours differ. Bone uniform over a coarse cell costs a
     # quarter of the samples (air is always sampled; in a groove's cutting zone few cells are
     # uniform: ~20 of ~430 fine corners a tick). Until it is settled (pass 1b) a corner holds
-    # PENDING or UNNEEDED in channel 0, and channel 2 of element rows the facing flags.
+    # PENDING or UNNEEDED in channel 0.
     mark_needed(vert, sin_t, cos_t, cos_p, sin_p, v1, v2, v3, sample_all)
     for j in range(n_theta + 1):
         pole = j == 0 or j == n_theta
@@ -119,14 +116,19 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                                hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
                                half_p)
     # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled;
-    # the unneeded ones read as no bone.
+    # the unneeded ones read as no bone. Noted: the first and last ring with bone.
+    ring_lo = n_theta + 1
+    ring_hi = -1
     for j in range(n_theta + 1):
         for k in range(n_phi):
-            if not settle_fine(vert, j, k, n_theta, n_phi):
-                continue
-            _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
-                           swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis, hx,
-                           hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t, half_p)
+            if settle_fine(vert, j, k, n_theta, n_phi):
+                _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
+                               swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
+                               hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
+                               half_p)
+            if vert[j, k, 0] > 0.0:
+                ring_lo = min(ring_lo, j)
+                ring_hi = j
     # Outward surface normal: from the density gradient where the bone's surface crosses the
     # burr; failing that, against the mean normal of the elements in bone.
     gsx = 0.0
@@ -135,13 +137,14 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     nsum1 = 0.0
     nsum2 = 0.0
     nsum3 = 0.0
-    # Pass 2: integrate the elements.
+    # Pass 2: integrate the elements, in the rows between those rings (the others have no
+    # bone at any corner: the loop would skip each of their elements).
     for k in range(n_phi):
         k1 = k + 1 if k + 1 < n_phi else 0
         cp = cos_p[k]
         sp = sin_p[k]
         vu = v1 * cp + v2 * sp
-        for j in range(n_theta):
+        for j in range(max(ring_lo - 1, 0), min(ring_hi + 1, n_theta)):
             st = sin_t[j]
             ct = cos_t[j]
             vn = st * vu + ct * v3
@@ -242,6 +245,14 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
 
 
 @hot_inline
+def patch_half_sides(radius, d_theta, d_phi, m):
+    """Half-sides of a sub-element (m×m per element of dθ × dφ on a sphere of ``radius`` mm)
+    along θ and, per sin θ, along φ, mm: the patch a sample's path share is taken over
+    (``history.history_share``); a patch at θ reaches at most their sum."""
+    return 0.5 * radius * d_theta / m, 0.5 * radius * d_phi / m
+
+
+@hot_inline
 def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
                    brick_bone, centre, radius, basis, hx, hy, hz, r_in2, r_out2, cache, o0, o1,
                    o2, tick, cand, half_t, half_p):
@@ -278,8 +289,7 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
     ``vert[j, k, 0]`` PENDING if an element that will be evaluated needs it, else UNNEEDED.
 
     Args:
-        vert: float64 (n_rows + 1, n_phi, 3) corner samples; channel 2 of the element rows
-            holds the facing flags until the corners are sampled.
+        vert: float64 (n_rows + 1, n_phi, 3) corner samples: only channel 0 is written.
         n_rho, n_z: (n_rows,) the element rows' normal across and along the axis (sin θ,
             cos θ on the sphere).  cos_p, sin_p: (n_phi,) sector midpoints.
         v1, v2, v3: the feed in the tool frame, mm/s.  sample_all: every element counts
@@ -287,22 +297,22 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
     """
     n_rows = n_rho.shape[0]
     n_phi = cos_p.shape[0]
-    if not sample_all:
-        for j in range(n_rows):
-            st = n_rho[j]
-            ct3 = n_z[j] * v3
-            for k in range(n_phi):
-                facing = st * (v1 * cos_p[k] + v2 * sin_p[k]) + ct3 > 0.0
-                vert[j, k, 2] = 1.0 if facing else 0.0
     for j in range(n_rows + 1):
+        # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed? Element
+        # (j, k) faces it if n_rho[j]·(v1 cos φk + v2 sin φk) + n_z[j]·v3 > 0.
         ja = max(j - 1, 0)
         jb = min(j, n_rows - 1)
+        st_a = n_rho[ja]
+        ct3_a = n_z[ja] * v3
+        st_b = n_rho[jb]
+        ct3_b = n_z[jb] * v3
+        vu_before = v1 * cos_p[n_phi - 1] + v2 * sin_p[n_phi - 1]
         for k in range(n_phi):
-            # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed?
-            km = k - 1 if k > 0 else n_phi - 1
-            needed = sample_all or (vert[ja, km, 2] + vert[ja, k, 2] + vert[jb, km, 2]
-                                    + vert[jb, k, 2]) > 0.0
+            vu = v1 * cos_p[k] + v2 * sin_p[k]
+            needed = sample_all or (st_a * vu_before + ct3_a > 0.0 or st_a * vu + ct3_a > 0.0
+                                    or st_b * vu_before + ct3_b > 0.0 or st_b * vu + ct3_b > 0.0)
             vert[j, k, 0] = PENDING if needed else UNNEEDED
+            vu_before = vu
 
 
 @hot_inline

@@ -218,8 +218,7 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
     n_phi = cos_p.shape[0]
     m = cos_sub_p.shape[0]
     mf = float(m)
-    # Pass 1: which corners an evaluated element needs (channel 2 of element rows holds the
-    # facing flags until then), and their samples.
+    # Pass 1: which corners an evaluated element needs, and their samples.
     mark_needed(vert, elem[_NR], elem[_NZ], cos_p, sin_p, v1, v2, v3, sample_all)
     # Two levels, as force.cut_voxels: first the corners of even (j, k), the last ring and the
     # rings on the axis; then the others only where their coarse neighbours differ.

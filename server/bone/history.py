@@ -38,10 +38,17 @@ SEG_L2 = 7
 SEG_COLS = 8
 
 # Row 0 of the candidate array is a header (the candidates follow, one per row): how many,
-# and the tick's availability mode. One array keeps the samplers' argument lists short
-# (numba inlines at most 30 arguments).
+# the tick's availability mode and the burr's centre. One array keeps the samplers' argument
+# lists short (numba inlines at most 30 arguments).
 CAND_COUNT = 0
 CAND_MODE = 1
+CAND_CENTRE = 2  # [2:5] the burr's centre c this tick, grid frame, mm
+# A candidate row holds the segment (``SEG_*`` columns), then its front test
+# (``_front_bounds``): d = c − e, e the far end of its axis, and the two bounds.
+CAND_D = SEG_COLS  # [8:11] d, mm
+CAND_KAPPA = SEG_COLS + 3  # a sample at p is in front if (p − c)·d > this, mm²
+CAND_MU = SEG_COLS + 4  # ... and (p − c)·u ≥ this, mm²
+CAND_COLS = SEG_COLS + 5
 
 # The meta vector: the open segment, the run and the ring's bookkeeping (grid frame, mm).
 M_OPEN = 0  # 1 while a run is open
@@ -71,6 +78,9 @@ COLLINEAR_VOXELS = 0.005
 #: A sample this close to a capsule's surface counts as outside it (mm): the burr standing
 #: where it last carved must not find its own surface cut.
 ON_SURFACE_MM = 1e-7
+#: Relative slack of the front test (``_front_bounds``): it only passes samples whose margin
+#: is this share of the burr's size, ~10⁵ times the rounding of the test it stands in for.
+FRONT_SLACK = 1e-9
 
 #: Availability modes for a tick (``history_mode``).
 HISTORY_OFF = 0  # no path: the voxels' availability alone
@@ -85,14 +95,19 @@ def history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z):
     half-sides s1, s2 (mm, tangent to the surface); the signed distance to the capsules' union
     is linearized across it, so a capsule wall crossing the patch gives its exact share
     (``box_fraction``) and a wall the patch lies along (the burr in its own groove) gives 0 or
-    1, never a half."""
+    1, never a half. Where ``history_candidates`` set front tests (``patch`` ≥ 0), p must lie
+    on the burr's sphere it was given and the patch reach at most ``patch``."""
     # Divisions and square roots share one unit, which ~400 calls a tick keep busy: the
     # candidates carry 1/|u|², the patch's reach is taken only once p is inside a capsule,
     # and the nearest wall's normal g is kept unnormalized (|g| = g_len), the share being
     # scale-free.
     n = int(cand[0, CAND_COUNT])
-    # First, without a square root or a division: is the patch clear of every capsule (the
-    # burr's front, where most of its samples in bone lie)? Capsule i leaves the patch whole
+    # The burr's front (most of a tick's samples in bone), by the bounds the tick set: two
+    # dot products a capsule, where the test below takes about thirty operations.
+    if in_front(cand, n, px, py, pz):
+        return 1.0
+    # Then, without a square root or a division: is the patch clear of every capsule (beside
+    # the path's walls, where the front test's bounds fall short)? Capsule i leaves the patch whole
     # iff (q − r + ON)·q > |q·s1| + |q·s2| (q the offset from its axis; the test the loop
     # below ends on, for its nearest capsule), i.e. a = q² − |q·s1| − |q·s2| > (r − ON)·q,
     # squared. Clear of all, the nearest is clear too and the share is 1, as the loop finds.
@@ -202,11 +217,13 @@ def _add_candidate(cand, n, ax, ay, az, bx, by, bz, r, cx, cy, cz, reach):
 
 
 @hot_kernel
-def history_candidates(ring, meta, cx, cy, cz, reach, cand):
+def history_candidates(ring, meta, cx, cy, cz, reach, radius, patch, cand):
     """Collect the capsules that can hold a point within ``reach`` mm of c (the burr's centre
-    and radius plus a stencil's reach) into ``cand``, float64 (MAX_CANDIDATES + 1, SEG_COLS),
-    with its header: the count, and the tick's availability mode (``HISTORY_EXACT`` if the
-    path knows every cut within reach, else ``HISTORY_PARTIAL``)."""
+    and radius plus a stencil's reach) into ``cand``, float64 (MAX_CANDIDATES + 1, CAND_COLS),
+    with its header: the count, the tick's availability mode (``HISTORY_EXACT`` if the path
+    knows every cut within reach, else ``HISTORY_PARTIAL``) and c; and each capsule's front
+    test for samples on the burr's sphere (``radius``, mm) whose patches reach at most
+    ``patch`` mm (|s1| + |s2|; < 0: no front test, ``history_share`` then takes any point)."""
     n = 0
     overflow = False
     count = int(meta[M_COUNT])
@@ -249,6 +266,67 @@ def history_candidates(ring, meta, cx, cy, cz, reach, cand):
                and cz + reach > meta[lo + 2] and cz - reach < meta[hi + 2])
     cand[0, CAND_COUNT] = n
     cand[0, CAND_MODE] = HISTORY_PARTIAL if unknown or overflow else HISTORY_EXACT
+    cand[0, CAND_CENTRE] = cx
+    cand[0, CAND_CENTRE + 1] = cy
+    cand[0, CAND_CENTRE + 2] = cz
+    for i in range(1, n + 1):
+        _front_bounds(cand, i, cx, cy, cz, radius, patch)
+
+
+@hot_inline
+def in_front(cand, n, px, py, pz):
+    """True if a sample at p (grid frame, mm) is in front of each of the ``n`` candidates in
+    ``cand`` by the bounds ``history_candidates`` set for the tick (``_front_bounds``): its
+    patch is then clear of all of them, as ``history_share``'s first pass would find."""
+    vx = px - cand[0, CAND_CENTRE]
+    vy = py - cand[0, CAND_CENTRE + 1]
+    vz = pz - cand[0, CAND_CENTRE + 2]
+    for i in range(n, 0, -1):
+        if not (vx * cand[i, CAND_D] + vy * cand[i, CAND_D + 1] + vz * cand[i, CAND_D + 2]
+                > cand[i, CAND_KAPPA]
+                and vx * cand[i, 3] + vy * cand[i, 4] + vz * cand[i, 5] >= cand[i, CAND_MU]):
+            return False
+    return True
+
+
+@hot_inline
+def _front_bounds(cand, i, cx, cy, cz, radius, patch):
+    """Bounds of candidate i's front test, for samples p on the sphere of ``radius`` mm about
+    c with patches (s1, s2 tangent to it) that reach at most ``patch`` mm: a sample with
+    (p − c)·d > κ and (p − c)·u ≥ μ is clear of the capsule by ``history_share``'s first pass,
+    which then needs not run for it.
+
+    With e the axis's far end and d = c − e, (p − c)·u ≥ μ puts p beyond e (the offset's
+    parameter ≥ 1 + FRONT_SLACK, so it is clamped to 1: q = p − e = (p − c) + d). Then
+    |q|² = R² + 2(p − c)·d + |d|², and as s1, s2 ⊥ p − c, |q·s1| + |q·s2| ≤ |d|·patch. The
+    first pass's a = q² − |q·s1| − |q·s2| exceeds (r − ON)·|q| (and 0) once |q| > Q*, the
+    root of Q² − (r − ON)·Q − |d|·patch: κ puts |q|² above Q*² by FRONT_SLACK of it, ~10⁻⁹
+    mm², where the rounding of either test is ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
+    is from a) has e = a and no condition on u. ``patch`` < 0: κ = ∞, no sample is in front.
+    """
+    ux = cand[i, 3]
+    uy = cand[i, 4]
+    uz = cand[i, 5]
+    segment = cand[i, 7] > 0.0
+    dx = cx - cand[i, 0] - (ux if segment else 0.0)
+    dy = cy - cand[i, 1] - (uy if segment else 0.0)
+    dz = cz - cand[i, 2] - (uz if segment else 0.0)
+    d2 = dx * dx + dy * dy + dz * dz
+    kappa = math.inf
+    if patch >= 0.0:
+        d_patch = math.sqrt(d2) * patch
+        rr = cand[i, 6] - ON_SURFACE_MM
+        q_star = (0.5 * (rr + math.sqrt(rr * rr + 4.0 * d_patch)) if rr > 0.0
+                  else math.sqrt(d_patch))
+        kappa = 0.5 * (q_star * q_star * (1.0 + FRONT_SLACK) - radius * radius - d2)
+    mu = -math.inf
+    if segment:
+        mu = FRONT_SLACK * (ux * ux + uy * uy + uz * uz) - (dx * ux + dy * uy + dz * uz)
+    cand[i, CAND_D] = dx
+    cand[i, CAND_D + 1] = dy
+    cand[i, CAND_D + 2] = dz
+    cand[i, CAND_KAPPA] = kappa
+    cand[i, CAND_MU] = mu
 
 
 @hot_kernel
@@ -363,7 +441,7 @@ class BurrPath:
                  segments: int = PATH_SEGMENTS) -> None:
         self.ring = np.zeros((segments, SEG_COLS))
         self.meta = np.zeros(N_META)
-        self.candidates = np.zeros((MAX_CANDIDATES + 1, SEG_COLS))
+        self.candidates = np.zeros((MAX_CANDIDATES + 1, CAND_COLS))
         self._bounds = (np.asarray(bounds_mm[0], dtype=np.float64),
                         np.asarray(bounds_mm[1], dtype=np.float64))
         self.clear(carved_before)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE, carve_sphere
-from .force import cut_voxels
+from .force import cut_voxels, patch_half_sides
 from .history import history_candidates, history_record
 from .shaft import N_SHAFT, shaft_contact
 
@@ -49,8 +49,9 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     if touch[TOUCH_NEAR_BONE] != 0.0:
         # The path's capsules that can hold a sample: the burr's surface plus a stencil.
         h_max = max(spacing[0], max(spacing[1], spacing[2]))
+        half_t, half_p = patch_half_sides(radius, d_theta, d_phi, cos_sub_t.shape[0])
         history_candidates(path_ring, path_meta, centre[0], centre[1], centre[2],
-                           radius + 2.0 * h_max, path_cand)
+                           radius + 2.0 * h_max, radius, half_t + half_p, path_cand)
         cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
                    sin_sub_p, (cos_tv, sin_tv, cos_pv, sin_pv), radius, centre, axis, v_feed,
                    omega, cutting, density, swept, labels, us_tab, usk_tab,
