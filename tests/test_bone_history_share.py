@@ -12,9 +12,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from burrforce.server.bone.history import (
+    CAND_CENTRE,
     CAND_COLS,
     CAND_COUNT,
     CAND_MODE,
+    CAND_MU,
     HISTORY_EXACT,
     _front_bounds,
     history_share,
@@ -35,6 +37,7 @@ def candidates(capsules: list[tuple[np.ndarray, np.ndarray, float]],
     cand = np.zeros((len(capsules) + 1, CAND_COLS))
     cand[0, CAND_COUNT] = len(capsules)
     cand[0, CAND_MODE] = HISTORY_EXACT
+    cand[0, CAND_CENTRE:CAND_CENTRE + 3] = 0.0
     for n, (a, u, r) in enumerate(capsules, start=1):
         l2 = float(u @ u)
         cand[n, :3] = a
@@ -175,7 +178,7 @@ def test_no_capsule_leaves_the_whole_patch():
 def burr_just_ahead_of_its_path(draw):
     """The tick's case: a patch of the burr's surface and its path's last capsules, a run and
     the tail to where it last carved, which lies 0.1 µm to 50 µm behind its centre; the run
-    bends away from the tail by up to ~10°, or is a point."""
+    bends away from the tail by up to ~12°, or is a point."""
     p, s1, s2 = patch_at(vectors(draw), draw(st.floats(0.2, 1.0)))
     back = -vectors(draw)
     last = 10.0 ** draw(st.floats(-4.0, np.log10(0.05))) * back
@@ -220,3 +223,16 @@ def test_the_front_test_passes_the_burrs_front_and_nothing_behind():
     facing = normals @ feed
     assert ahead[facing > 0.1].mean() > 0.95
     assert not ahead[facing < 0.0].any()
+
+
+def test_a_sample_beside_a_capsule_is_not_in_front_of_its_end():
+    """A run passing beneath the burr and ending beside it: a sample on the burr's flank is
+    in front of the run's end by d alone, yet inside the run's capsule (share 0). The test on
+    u (the sample beyond the end) is what keeps the front test from passing it."""
+    run = (np.array([-3.0, 0.0, -1.0]), np.array([2.99, 0.0, 0.0]), R_MM)
+    p, s1, s2 = patch_at(unit([-0.9, 0.0, 0.2]), 1.0)
+    assert shares(p, s1, s2, [run]) == 0.0
+    cand = candidates([run], float(np.linalg.norm(s1) + np.linalg.norm(s2)))
+    assert not in_front(cand, 1, *p)
+    cand[1, CAND_MU] = -np.inf
+    assert in_front(cand, 1, *p)

@@ -78,9 +78,11 @@ COLLINEAR_VOXELS = 0.005
 #: A sample this close to a capsule's surface counts as outside it (mm): the burr standing
 #: where it last carved must not find its own surface cut.
 ON_SURFACE_MM = 1e-7
-#: Relative slack of the front test (``_front_bounds``): it only passes samples whose margin
-#: is this share of the burr's size, ~10⁵ times the rounding of the test it stands in for.
+#: Slack of the front test (``_front_bounds``): relative, a share of the squared distance it
+#: bounds; and absolute, this many rounding steps of the grid's coordinates: a sample is placed
+#: on the burr's sphere to within those, however far the grid extends.
 FRONT_SLACK = 1e-9
+FRONT_ULPS = 64.0
 
 #: Availability modes for a tick (``history_mode``).
 HISTORY_OFF = 0  # no path: the voxels' availability alone
@@ -296,12 +298,14 @@ def _front_bounds(cand, i, cx, cy, cz, radius, patch):
     (p − c)·d > κ and (p − c)·u ≥ μ is clear of the capsule by ``history_share``'s first pass,
     which then needs not run for it.
 
-    With e the axis's far end and d = c − e, (p − c)·u ≥ μ puts p beyond e (the offset's
-    parameter ≥ 1 + FRONT_SLACK, so it is clamped to 1: q = p − e = (p − c) + d). Then
-    |q|² = R² + 2(p − c)·d + |d|², and as s1, s2 ⊥ p − c, |q·s1| + |q·s2| ≤ |d|·patch. The
-    first pass's a = q² − |q·s1| − |q·s2| exceeds (r − ON)·|q| (and 0) once |q| > Q*, the
-    root of Q² − (r − ON)·Q − |d|·patch: κ puts |q|² above Q*² by FRONT_SLACK of it, ~10⁻⁹
-    mm², where the rounding of either test is ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
+    With e = a + u the axis's end point and d = c − e, (p − c)·u ≥ μ puts p beyond e (the
+    offset's parameter ≥ 1 + FRONT_SLACK, so it is clamped to 1: q = p − e = (p − c) + d).
+    Then |q|² = R² + 2(p − c)·d + |d|², and as s1, s2 ⊥ p − c, |q·s1| + |q·s2| ≤ |d|·patch.
+    The first pass's a = q² − |q·s1| − |q·s2| exceeds (r − ON)·|q| (and 0) once |q| > Q*, the
+    root of Q² − (r − ON)·Q − |d|·patch: κ puts |q|² above Q*² by FRONT_SLACK of it and by
+    FRONT_ULPS rounding steps of the coordinates times (R + |d|), which p's own rounding (off
+    the sphere by a few of those steps) and either test's cannot cross: for a 2 mm burr near
+    100 mm, ~4·10⁻⁹ and ~4·10⁻¹² mm² against ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
     is from a) has e = a and no condition on u. ``patch`` < 0: κ = ∞, no sample is in front.
     """
     ux = cand[i, 3]
@@ -318,7 +322,9 @@ def _front_bounds(cand, i, cx, cy, cz, radius, patch):
         rr = cand[i, 6] - ON_SURFACE_MM
         q_star = (0.5 * (rr + math.sqrt(rr * rr + 4.0 * d_patch)) if rr > 0.0
                   else math.sqrt(d_patch))
-        kappa = 0.5 * (q_star * q_star * (1.0 + FRONT_SLACK) - radius * radius - d2)
+        coords = max(max(abs(cx), abs(cy)), max(abs(cz), radius))
+        rounding = FRONT_ULPS * 2.3e-16 * coords * (radius + math.sqrt(d2))
+        kappa = 0.5 * (q_star * q_star * (1.0 + FRONT_SLACK) - radius * radius - d2) + rounding
     mu = -math.inf
     if segment:
         mu = FRONT_SLACK * (ux * ux + uy * uy + uz * uz) - (dx * ux + dy * uy + dz * uz)
