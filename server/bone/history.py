@@ -44,7 +44,7 @@ CAND_COUNT = 0
 CAND_MODE = 1
 CAND_CENTRE = 2  # [2:5] the burr's centre c this tick, grid frame, mm
 # A candidate row holds the segment (``SEG_*`` columns), then its front test
-# (``_front_bounds``): d = c − e, e the far end of its axis, and the two bounds.
+# (``_front_bounds``): d = c − e, e = a + u its axis's end point, and the two bounds.
 CAND_D = SEG_COLS  # [8:11] d, mm
 CAND_KAPPA = SEG_COLS + 3  # a sample at p is in front if (p − c)·d > this, mm²
 CAND_MU = SEG_COLS + 4  # ... and (p − c)·u ≥ this, mm²
@@ -305,7 +305,7 @@ def _front_bounds(cand, i, cx, cy, cz, radius, patch):
     root of Q² − (r − ON)·Q − |d|·patch: κ puts |q|² above Q*² by FRONT_SLACK of it and by
     FRONT_ULPS rounding steps of the coordinates times (R + |d|), which p's own rounding (off
     the sphere by a few of those steps) and either test's cannot cross: for a 2 mm burr near
-    100 mm, ~4·10⁻⁹ and ~4·10⁻¹² mm² against ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
+    100 mm, ~4·10⁻⁹ and ~3·10⁻¹² mm² against ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
     is from a) has e = a and no condition on u. ``patch`` < 0: κ = ∞, no sample is in front.
     """
     ux = cand[i, 3]
