@@ -3,6 +3,7 @@ session on a real voxel bone (no sockets: Dispatcher.handle)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -106,6 +107,23 @@ def test_the_proxy_is_stable_for_any_cutting_damping(beta, device_p, device_v, d
     # The cut the proxy met opposes its motion.
     assert np.dot(result[R_CUT:R_CUT + 3], v) <= 1e-9
     assert np.linalg.norm(result[R_FORCE:R_FORCE + 3]) <= PROFILES["touch"].max_force_N + 1e-9
+
+
+@pytest.mark.parametrize("limit", ["max_stiffness_N_mm", "max_damping_N_s_mm"])
+def test_the_smallest_limits_the_api_accepts_tick_on_a_slow_stream(limit):
+    """A device limit as small as the REST schema allows (> 0: 5e-324) on a stream 2 s between
+    packets takes the coupling's stiffness to 0 (it scales with the rated period over the
+    actual one); the tick must still give a finite answer, not a division by zero (an
+    INTERNAL reply on every datagram: found by tests/test_api_schema.py)."""
+    config = HapticsConfig.for_device(dataclasses.replace(PROFILES["touch"], **{limit: 5e-324}))
+    state, params = new_state(), config.params_vector(np.full(3, 0.1), 2000.0)
+    centre, feed = np.zeros(3), np.zeros(3)
+    for place in (True, False):
+        coupled_predict(state, params, np.zeros(3), np.zeros(3), 2.0, place, centre, feed)
+    result = np.zeros(N_RESULT)
+    coupled_finish(state, params, np.zeros(N_OUT), np.zeros(9), np.zeros(8), True, 2.0, result,
+                   np.zeros(12))
+    assert np.all(np.isfinite(result))
 
 
 # -- a session's coupled output on a voxel bone -----------------------------------------------

@@ -400,7 +400,9 @@ def coupled_finish(state, params, engine_out, jacobian, shaft_out, cut_weight, r
         force[i] = (k * (state[S_PROXY + i] - state[S_DEVICE + i])
                     + b * (state[S_PROXY_V + i] - state[S_DEVICE_V + i]))
     energy = state[S_ENERGY]
-    cap = 0.5 * params[P_MAX_FORCE] ** 2 / k
+    # Limits the API accepts (a stiffness or damping of 1e-300) on a slow stream take k to
+    # 0: a spring that holds nothing, whose cap is unbounded.
+    cap = 0.5 * params[P_MAX_FORCE] ** 2 / k if k > 0.0 else math.inf
     if state[S_HAVE_PREV] != 0.0:
         dx = result[R_PROXY:R_PROXY + 3]  # scratch until the proxy is written below
         for i in range(3):
