@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from burrforce.server.bench.accuracy import oblique_rotation
 from burrforce.server.bench.groove import groove_block, run_groove
@@ -17,6 +19,7 @@ from burrforce.server.bone import (
 )
 from burrforce.server.bone.carve import TOUCH_VISITED
 from burrforce.server.bone.history import BurrPath
+from burrforce.server.bone.voxels import stencils_inside
 from burrforce.server.model import CuttingModel, CuttingParams, thesis_cases
 from burrforce.server.model.cases import CuttingCase
 from burrforce.server.model.reference import reference_case
@@ -216,6 +219,61 @@ def test_the_burr_turned_end_for_end_cuts_the_same(axis):
     assert np.abs(np.subtract(forward, reversed_)).max() <= 1e-12 * np.abs(forward).max()
 
 
+def _tilted_bone(n: int, pad: int) -> BoneGrid:
+    """A bone whose surface is a tilted plane through an n³ grid of 0.1 mm voxels (bone up
+    to its high faces), with ``pad`` voxels of air added beyond them."""
+    x, y, z = np.meshgrid(*(np.arange(n) * 0.1,) * 3, indexing="ij")
+    fraction = np.clip((0.9 * x + 0.5 * y + 0.3 * z - 3.0) / 0.25, 0.0, 1.0)
+    fraction = np.pad(fraction, ((0, pad),) * 3)
+    return BoneGrid.from_fraction(fraction, 0.1)
+
+
+@pytest.mark.parametrize("centre", [(5.6, 3.1, 3.2), (3.3, 5.4, 3.0), (3.1, 3.2, 5.7),
+                                    (5.2, 5.1, 4.9)])
+def test_a_burr_across_the_grids_edge_cuts_as_in_a_grid_padded_with_air(centre):
+    """Samples are checked against the grid's bounds only where the burr's sphere comes within
+    a voxel of them (``voxels.stencils_inside``, once a tick); inside, they read the voxels
+    unchecked. A burr reaching past the grid's high faces (every sample checked, the voxels
+    beyond read as empty) must cut as the same burr in the same grid padded there with air,
+    where its samples go unchecked: to rounding (the two paths sum the stencil in different
+    orders)."""
+    n, pad = 60, 25
+    edge = BoneEngine(_tilted_bone(n, 0), shaft=ShaftParams(length_mm=0.0))
+    padded = BoneEngine(_tilted_bone(n, pad), shaft=ShaftParams(length_mm=0.0))
+    radius = edge.params.radius_mm
+    c = np.asarray(centre)
+    assert not stencils_inside(n, n, n, 0.1, 0.1, 0.1, *c, radius)
+    assert stencils_inside(n + pad, n + pad, n + pad, 0.1, 0.1, 0.1, *c, radius)
+    axis = np.array([0.3, -0.4, 0.8]) / np.linalg.norm([0.3, -0.4, 0.8])
+    feed = (-2.0, -1.0, -0.5)
+    a = edge.step(centre, axis, feed, RPM, carve=False)
+    b = padded.step(centre, axis, feed, RPM, carve=False)
+    assert a.cut.cutting_elements > 20 and np.linalg.norm(a.cut.force_N) > 0.1
+    assert np.allclose(a.cut.force_N, b.cut.force_N, rtol=1e-12, atol=0.0)
+    np.testing.assert_allclose(edge.out, padded.out, rtol=1e-12,
+                               atol=1e-12 * np.abs(edge.out).max())
+
+
+@given(centre=st.tuples(*(st.floats(-5.0, 15.0),) * 3), radius=st.floats(0.05, 4.0),
+       spacing=st.tuples(*(st.floats(0.02, 0.5),) * 3),
+       shape=st.tuples(*(st.integers(2, 120),) * 3), seed=st.integers(0, 2**32 - 1))
+@settings(max_examples=300, deadline=None)
+def test_where_the_stencils_are_inside_every_point_of_the_sphere_has_its_stencil_inside(
+        centre, radius, spacing, shape, seed):
+    """What the force's samples rely on when ``stencils_inside`` lets them skip their bounds
+    checks: every point placed on the sphere as the force places them (centre + R·unit) has
+    its whole trilinear stencil, voxels i0 and i0 + 1 on each axis, inside the grid."""
+    if not stencils_inside(*shape, *spacing, *centre, radius):
+        return
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(200, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    u = np.vstack([u, np.eye(3), -np.eye(3)])  # the sphere's extremes along each axis
+    p = np.asarray(centre) + radius * u
+    i0 = np.floor(p * (1.0 / np.asarray(spacing)))
+    assert (i0 >= 0).all() and (i0 + 1 <= np.asarray(shape) - 1).all()
+
+
 def test_step_rejects_bad_flags_and_times():
     engine = BoneEngine(groove_block(0.4))
     with pytest.raises(ValueError, match="carve"):
@@ -260,7 +318,7 @@ def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
             frac = sample_bone(g.density, g.swept, g.labels, engine.materials.us,
                                engine.materials.usk, g.brick_bone, p[0], p[1], p[2], *h, *c,
                                radius, r_in2, r_out2, cache, *o, engine._stamp,
-                               engine.path.candidates, *s1, *s2)[0]
+                               engine.path.candidates, tuple(s1), tuple(s2), False)[0]
             if vert[j, k, 0] == 0.0 and frac != 0.0:
                 continue  # an unneeded corner (no facing element): not sampled at all
             in_bone += frac > 0.0

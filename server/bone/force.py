@@ -15,7 +15,7 @@ import math
 
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT, accumulate_forces, finish, tool_basis
-from .voxels import cache_origin, sample_bone, sphere_reach
+from .voxels import cache_origin, sample_bone, sphere_reach, stencils_inside
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
 #: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
@@ -92,6 +92,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     inv_m2 = 1.0 / m2  # the sub-element loop multiplies: divisions queue on one unit
     inv_feed = 1.0 / feed_speed if has_cut else 0.0
     half_t, half_p = patch_half_sides(radius, d_theta, d_phi, m)
+    # Every sample lies on the burr's sphere: where all of their stencils are inside the grid
+    # (nearly always), no sample checks its own.
+    interior = stencils_inside(density.shape[0], density.shape[1], density.shape[2], hx, hy, hz,
+                               cx, cy, cz, radius)
     # Pass 1: sample the bone once at every element corner that an evaluated element needs,
     # in two levels: first the corners with even (j, k) (and the last ring), then the others
     # only where their coarse neighbours differ. Bone uniform over a coarse cell costs a
@@ -114,7 +118,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                 _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                                swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
                                hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
-                               half_p)
+                               half_p, interior)
     # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled;
     # the unneeded ones read as no bone. Noted: the first and last ring with bone.
     ring_lo = n_theta + 1
@@ -125,7 +129,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                 _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
                                swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
                                hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
-                               half_p)
+                               half_p, interior)
             if vert[j, k, 0] > 0.0:
                 ring_lo = min(ring_lo, j)
                 ring_hi = j
@@ -203,11 +207,11 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                         density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
                         hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1,
                         o2, tick, cand,
-                        half_t * (ct2 * cp2 * e1x + ct2 * sp2 * e2x - st2 * e3x),
-                        half_t * (ct2 * cp2 * e1y + ct2 * sp2 * e2y - st2 * e3y),
-                        half_t * (ct2 * cp2 * e1z + ct2 * sp2 * e2z - st2 * e3z),
-                        h2 * (cp2 * e2x - sp2 * e1x), h2 * (cp2 * e2y - sp2 * e1y),
-                        h2 * (cp2 * e2z - sp2 * e1z))
+                        (half_t * (ct2 * cp2 * e1x + ct2 * sp2 * e2x - st2 * e3x),
+                         half_t * (ct2 * cp2 * e1y + ct2 * sp2 * e2y - st2 * e3y),
+                         half_t * (ct2 * cp2 * e1z + ct2 * sp2 * e2z - st2 * e3z)),
+                        (h2 * (cp2 * e2x - sp2 * e1x), h2 * (cp2 * e2y - sp2 * e1y),
+                         h2 * (cp2 * e2z - sp2 * e1z)), interior)
                     if frac <= 0.0:
                         continue
                     w_area = area_unit * st2 * inv_m2 * refined
@@ -255,11 +259,12 @@ def patch_half_sides(radius, d_theta, d_phi, m):
 @hot_inline
 def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
                    brick_bone, centre, radius, basis, hx, hy, hz, r_in2, r_out2, cache, o0, o1,
-                   o2, tick, cand, half_t, half_p):
+                   o2, tick, cand, half_t, half_p, interior):
     """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``.
 
     ``centre``: (3,) burr centre; ``basis``: the tool frame (e1, e2, e3) as 9 floats
-    (``tool_basis``), packed to keep to 30 arguments (``hot_kernel``).
+    (``tool_basis``), packed to keep to 30 arguments (``hot_kernel``); ``interior``: every
+    sample's stencil lies inside the grid (``voxels.stencils_inside``).
     """
     cx = centre[0]
     cy = centre[1]
@@ -274,10 +279,11 @@ def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab,
     frac, us_f, usk_f, _, _, _ = sample_bone(
         density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
         cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand,
-        half_t * (ct * cpv * e1x + ct * spv * e2x - st * e3x),
-        half_t * (ct * cpv * e1y + ct * spv * e2y - st * e3y),
-        half_t * (ct * cpv * e1z + ct * spv * e2z - st * e3z),
-        h2 * (cpv * e2x - spv * e1x), h2 * (cpv * e2y - spv * e1y), h2 * (cpv * e2z - spv * e1z))
+        (half_t * (ct * cpv * e1x + ct * spv * e2x - st * e3x),
+         half_t * (ct * cpv * e1y + ct * spv * e2y - st * e3y),
+         half_t * (ct * cpv * e1z + ct * spv * e2z - st * e3z)),
+        (h2 * (cpv * e2x - spv * e1x), h2 * (cpv * e2y - spv * e1y), h2 * (cpv * e2z - spv * e1z)),
+        interior)
     vert[j, k, 0] = frac
     vert[j, k, 1] = us_f
     vert[j, k, 2] = usk_f
@@ -297,22 +303,28 @@ def mark_needed(vert, n_rho, n_z, cos_p, sin_p, v1, v2, v3, sample_all):
     """
     n_rows = n_rho.shape[0]
     n_phi = cos_p.shape[0]
+    if sample_all:
+        for j in range(n_rows + 1):
+            for k in range(n_phi):
+                vert[j, k, 0] = PENDING
+        return
     for j in range(n_rows + 1):
         # The corner belongs to elements (j−1 | j, k−1 | k); is any facing the feed? Element
-        # (j, k) faces it if n_rho[j]·(v1 cos φk + v2 sin φk) + n_z[j]·v3 > 0.
+        # (j, k) faces it if n_rho[j]·(v1 cos φk + v2 sin φk) + n_z[j]·v3 > 0. Sector k's
+        # two elements are tested once, for corners k and k + 1.
         ja = max(j - 1, 0)
         jb = min(j, n_rows - 1)
         st_a = n_rho[ja]
         ct3_a = n_z[ja] * v3
         st_b = n_rho[jb]
         ct3_b = n_z[jb] * v3
-        vu_before = v1 * cos_p[n_phi - 1] + v2 * sin_p[n_phi - 1]
+        vu = v1 * cos_p[n_phi - 1] + v2 * sin_p[n_phi - 1]
+        faces_before = st_a * vu + ct3_a > 0.0 or st_b * vu + ct3_b > 0.0
         for k in range(n_phi):
             vu = v1 * cos_p[k] + v2 * sin_p[k]
-            needed = sample_all or (st_a * vu_before + ct3_a > 0.0 or st_a * vu + ct3_a > 0.0
-                                    or st_b * vu_before + ct3_b > 0.0 or st_b * vu + ct3_b > 0.0)
-            vert[j, k, 0] = PENDING if needed else UNNEEDED
-            vu_before = vu
+            faces = st_a * vu + ct3_a > 0.0 or st_b * vu + ct3_b > 0.0
+            vert[j, k, 0] = PENDING if faces or faces_before else UNNEEDED
+            faces_before = faces
 
 
 @hot_inline

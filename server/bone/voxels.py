@@ -102,9 +102,19 @@ def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy
 
 
 @hot_inline
+def stencils_inside(nx, ny, nz, hx, hy, hz, cx, cy, cz, reach):
+    """True if every point within ``reach`` mm of (cx, cy, cz) (grid frame, mm) has its
+    trilinear stencil inside a grid of (nx, ny, nz) voxels of (hx, hy, hz) mm: one voxel
+    of margin, far more than the rounding of points placed on a sphere of that radius."""
+    return (cx - reach - hx >= 0.0 and cx + reach + hx < (nx - 1) * hx
+            and cy - reach - hy >= 0.0 and cy + reach + hy < (ny - 1) * hy
+            and cz - reach - hz >= 0.0 and cz + reach + hz < (nz - 1) * hz)
+
+
+@hot_inline
 def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand, s1x, s1y,
-                s1z, s2x, s2y, s2z):
+                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand, s1, s2,
+                interior):
     """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
 
     Returns (fraction, us_fraction, usk_fraction, gx, gy, gz):
@@ -115,12 +125,13 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
             Where the stencil holds swept voxels, the burr's own path (``history``) decides:
             ``cand`` holds its capsules near the burr and whether they replace the voxels'
             availability (``HISTORY_EXACT``) or multiply it; the patch at p is the rectangle
-            spanned by its half-sides s1, s2 (mm, tangent to the burr).
+            spanned by its half-sides s1, s2 (mm, tangent to the burr; 3-tuples).
         us_fraction, usk_fraction: fraction weighted by each voxel's Us, Us·K (N/mm²).
         gx, gy, gz: gradient of the original density, 1/mm (points into the bone).
 
-    Voxels outside the grid are empty and unswept. ``cache``, (o0, o1, o2), ``tick``: the
-    tick's coverage cache (``cached_coverage``).
+    Voxels outside the grid are empty and unswept. ``interior``: the caller knows p's stencil
+    lies inside the grid (``stencils_inside``), so it is not checked. ``cache``, (o0, o1,
+    o2), ``tick``: the tick's coverage cache (``cached_coverage``).
     """
     nx, ny, nz = density.shape
     # Reciprocals of loop-invariant spacings: LLVM hoists them out of the caller's loops.
@@ -130,14 +141,16 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
     i0f = math.floor(fx)
     j0f = math.floor(fy)
     k0f = math.floor(fz)
-    if i0f < -1.0 or j0f < -1.0 or k0f < -1.0 or i0f >= nx or j0f >= ny or k0f >= nz:
+    if not interior and (i0f < -1.0 or j0f < -1.0 or k0f < -1.0 or i0f >= nx or j0f >= ny
+                         or k0f >= nz):
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     i0 = int(i0f)
     j0 = int(j0f)
     k0 = int(k0f)
+    inside = interior or (i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny
+                          and k0 + 1 < nz)
     # A stencil inside one brick that holds no bone reads nothing else.
-    if (i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz
-            and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
+    if (inside and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
             and (k0 & BRICK_MASK) != BRICK_MASK
             and brick_bone[np.uint64(i0 >> BRICK_SHIFT), np.uint64(j0 >> BRICK_SHIFT),
                            np.uint64(k0 >> BRICK_SHIFT)] == 0):
@@ -145,7 +158,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
     tx = fx - i0f
     ty = fy - j0f
     tz = fz - k0f
-    if i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz:
+    if inside:
         bone, us, usk, gx, gy, gz, swept_any = _gather_interior(
             density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
     else:
@@ -159,7 +172,7 @@ def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
             scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz,
                                    radius, r_in2, r_out2, density, cache, o0, o1, o2, tick)
         if cand[0, CAND_COUNT] > 0.0 and scale > 0.0:
-            scale *= history_share(cand, px, py, pz, s1x, s1y, s1z, s2x, s2y, s2z)
+            scale *= history_share(cand, px, py, pz, s1[0], s1[1], s1[2], s2[0], s2[1], s2[2])
     return (bone * scale, us * scale, usk * scale,
             gx * (1.0 / (255.0 * hx)), gy * (1.0 / (255.0 * hy)), gz * (1.0 / (255.0 * hz)))
 
