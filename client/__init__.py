@@ -4,7 +4,7 @@ REST control plane (``BurrRest``)."""
 from .aio import AsyncBurrClient
 from .rest import BurrRest, RestError
 from .trajectory import StreamResult, Waypoint, line, stream
-from .udp import BurrClient, Result, ServerError, ServerGone
+from .udp import BurrClient, Result, ServerError, ServerGone, StreamTaken
 
 __all__ = ["AsyncBurrClient", "BurrClient", "BurrRest", "RestError", "Result", "ServerError",
-           "ServerGone", "StreamResult", "Waypoint", "line", "stream"]
+           "ServerGone", "StreamResult", "StreamTaken", "Waypoint", "line", "stream"]

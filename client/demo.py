@@ -26,7 +26,7 @@ from ..proto.messages import (
 )
 from . import connection
 from .trajectory import Waypoint, line, stream
-from .udp import BurrClient, Result, ServerGone
+from .udp import BurrClient, Result, ServerGone, StreamTaken
 
 PROBE_SPEED_MM_S = 10.0
 PLUNGE_SPEED_MM_S = 1.0
@@ -49,6 +49,9 @@ class DemoRun:
     feeding: list[bool] = field(default_factory=list)
     #: The session renders the coupled output (the replies carry a coupling model).
     coupled: bool = False
+    #: Times the server ended this client's stream (another client's hello took it, or the
+    #: server restarted): each costs a hello and the packets in flight.
+    streams_ended: int = 0
 
 
 def shortest_arc(a: frames.Vec3, b: frames.Vec3) -> frames.Quat:
@@ -171,6 +174,7 @@ def run_demo(client: BurrClient, frame_name: str, x_mm: float = -5.0, y_mm: floa
     top = plan.tf.point_out((x_mm + length_mm, y_mm, surface + radius_mm + 5.0))
     client.exchange(top, plan.orientation(up), 0.0, False, flags=FLAG_RESET_VELOCITY,
                     timeout_s=1.0)
+    run.streams_ended = client.counters["wrong_stream"]
     return run
 
 
@@ -191,6 +195,7 @@ def summary(run: DemoRun) -> dict:
         "surface_z_mm": run.surface_z_mm,
         "ticks": len(run.t_s),
         "lost": run.lost,
+        "streams_ended": run.streams_ended,
         "cutting_ticks": int((status & STATUS_CUTTING > 0).sum()),
         "forbidden_ticks": int((status & STATUS_FORBIDDEN > 0).sum()),
         "steady_feed_N": float(mean[0]),
@@ -291,7 +296,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "voxel. Default: from the connection file")
     d.add_argument("--plot", type=Path, metavar="PATH", help="also write a PNG of the forces")
     d.add_argument("--json", action="store_true", help="print the summary as JSON")
+    d.add_argument("--give-way", action="store_true",
+                   help="stop (exit status 4) if another client takes the session's stream, "
+                        "instead of taking it back (what `serve --demo`'s own grooves do)")
     d.set_defaults(func=main)
+
+
+#: ``client demo``'s exit status when it gave the session's stream way (``--give-way``).
+EXIT_GAVE_WAY = 4
 
 
 def _endpoint(args: argparse.Namespace) -> tuple[str, int, int, str | None, str,
@@ -328,12 +340,21 @@ def main(args: argparse.Namespace) -> int:
         print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
 
     say(f"server {host}:{port}, session {session}, frame {frame}")
-    with BurrClient(host, port, session, key, timeout_s=0.5) as client:
+    with BurrClient(host, port, session, key, timeout_s=0.5, give_way=args.give_way) as client:
         try:
             run = run_demo(client, frame, args.x_mm, args.y_mm, args.length_mm, args.depth_mm,
                            args.feed_mm_s, args.rpm, args.angle_deg, args.radius_mm,
                            voxel_mm=voxel_mm, say=say)
+        except StreamTaken as taken:
+            print(f"burrforce client demo: {taken}", file=sys.stderr, flush=True)
+            return EXIT_GAVE_WAY
         except TimeoutError:
+            if client.counters["wrong_stream"]:
+                # Each side's hello took the stream from the other: neither was answered.
+                raise RuntimeError(
+                    f"session {session} streams to another client: the server ended this "
+                    f"client's stream {client.counters['wrong_stream']} times. Wait until it "
+                    "stops, or use another --session") from None
             raise RuntimeError(f"no answer from {host}:{port}: is `burrforce serve` running "
                                "there?") from None
         except ServerGone as error:  # before or after the groove: nothing to go on with

@@ -73,6 +73,20 @@ _HINTS = {
 }
 
 
+class StreamTaken(RuntimeError):
+    """The server gave the session's stream to another client, and this one gives way
+    (``give_way``) instead of saying hello and taking it back.
+
+    Attributes:
+        session: the session id.
+    """
+
+    def __init__(self, session: int) -> None:
+        self.session = session
+        super().__init__(f"another client took session {session}'s stream (the server "
+                         "answered WRONG_STREAM); this client gave way")
+
+
 class ServerGone(ConnectionError):
     """Nothing listens on the server's UDP port any more (the operating system said so: an
     ICMP "port unreachable" came back). The server stopped or restarted; a client that keeps
@@ -106,9 +120,16 @@ class SessionRules:
     (``bad_tag``, ``malformed``, ``foreign``, ``stale``); so are NEW_STREAM and WRONG_STREAM
     notices that do not verify. ``hellos`` counts hellos sent, ``streams`` streams adopted,
     ``wrong_stream`` streams the server ended.
+
+    A session has one stream: a client's hello takes it from whoever held it, whose next POSE
+    is answered WRONG_STREAM. Such a client says hello again and takes it back, unless
+    ``give_way``: then its next POSE raises :class:`StreamTaken` instead (a background client
+    that must not fight a person's: two clients taking the stream back and forth both lose
+    most of their packets). A server that restarted also ends the stream.
     """
 
-    def __init__(self, session: int, key: bytes | str | None, first_seq: int) -> None:
+    def __init__(self, session: int, key: bytes | str | None, first_seq: int,
+                 give_way: bool = False) -> None:
         if isinstance(key, str):
             key = parse_key(key)
         self.session = session
@@ -116,6 +137,7 @@ class SessionRules:
         self.seq = first_seq % SEQ_MODULUS
         self.newest: int | None = None
         self.stream = HELLO_STREAM
+        self.give_way = give_way
         #: The seq of the first hello since ``stream`` became 0 (None: none sent yet). Every
         #: POSE sent since went out as a hello, so the hellos are [this, self.seq).
         self._hello_from: int | None = None
@@ -127,7 +149,13 @@ class SessionRules:
                  spindle_on: bool, velocity: Sequence[float] | None, flags: int,
                  t_us: int | None) -> tuple[int, bytes]:
         """(seq, encoded POSE): the next sequence number, in the client's stream, or a hello
-        (stream 0: the server answers NEW_STREAM and does not tick it) while it has none."""
+        (stream 0: the server answers NEW_STREAM and does not tick it) while it has none.
+
+        Raises:
+            StreamTaken: ``give_way``, and the server ended this client's stream.
+        """
+        if self.give_way and self.stream == HELLO_STREAM and self.counters["wrong_stream"]:
+            raise StreamTaken(self.session)
         seq = self.seq
         self.seq = seq_next(seq)
         if self.stream == HELLO_STREAM:
@@ -225,6 +253,8 @@ class BurrClient:
         timeout_s: how long :meth:`exchange` waits for a reply.
         first_seq: the first sequence number (any: the server starts a stream's sequence at
             the stream's first POSE).
+        give_way: when another client takes the session's stream, stop (:meth:`send` and
+            :meth:`exchange` raise :class:`StreamTaken`) instead of taking it back.
 
     Replies are checked as ``SessionRules`` says; ``counters`` counts what was sent,
     received and dropped. :meth:`send`, :meth:`receive` and :meth:`exchange` raise
@@ -232,8 +262,8 @@ class BurrClient:
     """
 
     def __init__(self, host: str, port: int, session: int = 1, key: bytes | str | None = None,
-                 timeout_s: float = 0.1, first_seq: int = 1) -> None:
-        self.rules = SessionRules(session, key, first_seq)
+                 timeout_s: float = 0.1, first_seq: int = 1, give_way: bool = False) -> None:
+        self.rules = SessionRules(session, key, first_seq, give_way)
         self.counters = self.rules.counters
         self.timeout_s = timeout_s
         self.host = host
@@ -264,6 +294,7 @@ class BurrClient:
 
         Raises:
             ServerGone: an earlier datagram found nothing listening on the server's port.
+            StreamTaken: ``give_way``, and another client took the session's stream.
         """
         seq, datagram = self.rules.datagram(position, orientation, rpm, spindle_on, velocity,
                                             flags, t_us)

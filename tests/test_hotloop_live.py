@@ -20,6 +20,7 @@ from burrforce.client import (
     BurrClient,
     ServerError,
     ServerGone,
+    StreamTaken,
     Waypoint,
     line,
     stream,
@@ -404,6 +405,33 @@ def test_a_flood_of_replayed_hellos_never_disturbs_a_live_stream(server):
     assert all(r.reply.error == 0 for r in replies)
     assert not any(r.reply.status & STATUS_STALE for r in replies)
     assert replies[-1].reply.status & STATUS_CUTTING
+
+
+def test_a_client_giving_way_stops_when_another_takes_the_stream(server):
+    """A session has one stream: a second client's hello takes it, and the first one's next
+    POSE is answered WRONG_STREAM. A client that gives way (``give_way``; `client demo
+    --give-way`, as `serve --demo`'s own grooves run) then stops with StreamTaken instead of
+    saying hello and taking the stream back, and the other streams on undisturbed. One that
+    does not give way takes it back, and the other loses its stream in turn."""
+    above = (5.0, 0.0, 30.0)  # far above the bone: nothing is cut
+    # The session's handshake notices come from a bucket (100/s, a burst of 20) that a test
+    # before may have emptied with replayed hellos: a fifth of a second fills it.
+    time.sleep(0.5)
+    with (BurrClient(*server.address, session=KEYED, key=KEY, timeout_s=2.0,
+                     give_way=True) as polite,
+          BurrClient(*server.address, session=KEYED, key=KEY, timeout_s=2.0) as person):
+        assert polite.exchange(above).reply.error == OK
+        assert person.exchange(above).reply.error == OK  # its hello took the stream
+        with pytest.raises(StreamTaken, match=f"session {KEYED}'s stream"):
+            polite.exchange(above)
+        assert polite.counters["wrong_stream"] == 1 and polite.counters["hellos"] == 1
+        replies = [person.exchange(above) for _ in range(50)]
+        assert all(r.reply.error == OK for r in replies)
+        assert person.counters["wrong_stream"] == 0 and person.counters["streams"] == 1
+        with BurrClient(*server.address, session=KEYED, key=KEY, timeout_s=2.0) as rude:
+            assert rude.exchange(above).reply.error == OK
+            assert person.exchange(above).reply.error == OK  # after taking it back
+            assert person.counters["wrong_stream"] == 1 and person.counters["streams"] == 2
 
 
 def _closed_udp_port() -> int:

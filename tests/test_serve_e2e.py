@@ -106,6 +106,25 @@ def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
             while removed() < 1.5 * first:
                 assert time.monotonic() < deadline, "the demo cut no second groove"
                 time.sleep(0.5)
+        # A person's own `client demo` on the same session, as the demo's output suggests,
+        # started while one of the demo's grooves is being cut: that groove gives way to it,
+        # the next ones wait, and it cuts undisturbed.
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        deadline = time.monotonic() + 30
+        while _demo_client(serve.proc.pid) is None:  # both clients start up together
+            assert time.monotonic() < deadline, "no demo groove was being cut"
+            time.sleep(0.02)
+        # Two grooves back to back: longer than the demo's interval, so one of its grooves
+        # falls due while they are cut.
+        for y_mm in (-4.5, 4.5):
+            mine = _demo(env, tmp_path / "connection.json", tmp_path, y_mm)
+            assert mine["lost"] <= 5 and mine["cutting_ticks"] > 500
+            # At most a demo groove's first hello took the stream from it, once.
+            assert mine["streams_ended"] <= 1
+        deadline = time.monotonic() + 60
+        while "has been quiet" not in seen:
+            seen += lines.get(timeout=max(deadline - time.monotonic(), 0.1))
+        assert "--demo: another client streams on session" in seen
         # Stopped as Ctrl-C or `timeout` stop it: the signal reaches the whole process group,
         # so the groove being cut ends (killed) a moment before serve begins to stop.
         deadline = time.monotonic() + 30

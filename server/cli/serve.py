@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from ...client import connection
+from ...client.demo import EXIT_GAVE_WAY
 from ...proto.frames import FRAMES
 from ...proto.tag import parse_key
 from ..api.config import (
@@ -422,6 +423,11 @@ DEMO_LANES_MM = (3.0, -3.0, 6.0, -6.0)
 
 def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None,
               url: str, plane, session_id: int) -> None:
+    """The demo's grooves on ``session_id``: one at once, then one every ``DEMO_EVERY_S``.
+    They give the session's stream way to any other client (a person's `client demo`, an
+    engine) and wait to go on until the session has had no other traffic for a whole
+    interval: a session has one stream, and two clients taking it back and forth both lose
+    their packets."""
     say("--demo: running `burrforce client demo` against this server...")
     x_mm, y_mm = demo_start_mm(bone_info)
     code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
@@ -430,9 +436,36 @@ def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | Non
     say(f"--demo finished (exit {code}); the server keeps running.")
     say(f"--demo: watch it in the live view ({url}/ui/, the VIEW link above). A groove "
         f"beside the last every {DEMO_EVERY_S:.0f} s; the bone is reset after "
-        f"{len(DEMO_LANES_MM) + 1} grooves.")
+        f"{len(DEMO_LANES_MM) + 1} grooves. They give way to any other client on session "
+        f"{session_id}.")
+    paused = False
+
+    def pause() -> None:
+        nonlocal paused
+        if not paused:
+            say(f"--demo: another client streams on session {session_id}: the demo's grooves "
+                f"wait until it has been quiet for {DEMO_EVERY_S:.0f} s")
+        paused = True
+
+    if code == EXIT_GAVE_WAY:
+        pause()
     lane = 0
+    seen = _session_traffic(plane, session_id)
     while not done.wait(DEMO_EVERY_S):
+        now = _session_traffic(plane, session_id)
+        if now is None or seen is None:
+            # The session is (or was) being reloaded, its counters starting again: they say
+            # nothing about this interval.
+            seen = now
+            continue
+        if now != seen:  # someone else's packets while the demo waited
+            seen = now
+            pause()
+            continue
+        if paused:
+            say(f"--demo: session {session_id} has been quiet for {DEMO_EVERY_S:.0f} s: the "
+                "demo's grooves go on")
+            paused = False
         if lane == len(DEMO_LANES_MM):
             lane = 0
             # As POST …/reset does: the bone reloaded from its source, uncarved.
@@ -446,9 +479,24 @@ def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | Non
             lane += 1
         if code is None:
             return
-        if code != 0:
+        if code == EXIT_GAVE_WAY:
+            pause()
+        elif code != 0:
             say(f"--demo: stopped: a groove failed (exit {code})")
             return
+        seen = _session_traffic(plane, session_id)
+
+
+def _session_traffic(plane, session_id: int) -> int | None:
+    """The datagrams session ``session_id`` has taken so far (POSEs and hellos), or None
+    while it cannot say (its bone being replaced)."""
+    from ..api.manager import ApiError
+
+    try:
+        state = plane.session_state(session_id, max_events=0)
+    except ApiError:  # while the session reloads: ask again next time
+        return None
+    return int(state["accepted"]) + int(state["hellos"])
 
 
 def _demo_groove(conn_path: Path, done: threading.Event, x_mm: float, y_mm: float,
@@ -457,7 +505,7 @@ def _demo_groove(conn_path: Path, done: threading.Event, x_mm: float, y_mm: floa
     env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
     out = subprocess.DEVNULL if quiet else None
     proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo",
-                             "--x-mm", str(x_mm), "--y-mm", str(y_mm)],
+                             "--x-mm", str(x_mm), "--y-mm", str(y_mm), "--give-way"],
                             env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
     while proc.poll() is None:
         if done.wait(0.1):
