@@ -286,7 +286,8 @@ def in_front(cand, n, px, py, pz):
     for i in range(n, 0, -1):
         if not (vx * cand[i, CAND_D] + vy * cand[i, CAND_D + 1] + vz * cand[i, CAND_D + 2]
                 > cand[i, CAND_KAPPA]
-                and vx * cand[i, 3] + vy * cand[i, 4] + vz * cand[i, 5] >= cand[i, CAND_MU]):
+                and vx * cand[i, SEG_UX] + vy * cand[i, SEG_UX + 1] + vz * cand[i, SEG_UX + 2]
+                >= cand[i, CAND_MU]):
             return False
     return True
 
@@ -308,22 +309,23 @@ def _front_bounds(cand, i, cx, cy, cz, radius, patch):
     100 mm, ~4·10⁻⁹ and ~3·10⁻¹² mm² against ~10⁻¹³. A point capsule (1/|u|² = 0: its offset
     is from a) has e = a and no condition on u. ``patch`` < 0: κ = ∞, no sample is in front.
     """
-    ux = cand[i, 3]
-    uy = cand[i, 4]
-    uz = cand[i, 5]
-    segment = cand[i, 7] > 0.0
-    dx = cx - cand[i, 0] - (ux if segment else 0.0)
-    dy = cy - cand[i, 1] - (uy if segment else 0.0)
-    dz = cz - cand[i, 2] - (uz if segment else 0.0)
+    ux = cand[i, SEG_UX]
+    uy = cand[i, SEG_UX + 1]
+    uz = cand[i, SEG_UX + 2]
+    segment = cand[i, SEG_L2] > 0.0
+    dx = cx - cand[i, SEG_AX] - (ux if segment else 0.0)
+    dy = cy - cand[i, SEG_AX + 1] - (uy if segment else 0.0)
+    dz = cz - cand[i, SEG_AX + 2] - (uz if segment else 0.0)
     d2 = dx * dx + dy * dy + dz * dz
     kappa = math.inf
     if patch >= 0.0:
-        d_patch = math.sqrt(d2) * patch
-        rr = cand[i, 6] - ON_SURFACE_MM
+        d_len = math.sqrt(d2)
+        d_patch = d_len * patch
+        rr = cand[i, SEG_R] - ON_SURFACE_MM
         q_star = (0.5 * (rr + math.sqrt(rr * rr + 4.0 * d_patch)) if rr > 0.0
                   else math.sqrt(d_patch))
         coords = max(max(abs(cx), abs(cy)), max(abs(cz), radius))
-        rounding = FRONT_ULPS * 2.3e-16 * coords * (radius + math.sqrt(d2))
+        rounding = FRONT_ULPS * 2.3e-16 * coords * (radius + d_len)
         kappa = 0.5 * (q_star * q_star * (1.0 + FRONT_SLACK) - radius * radius - d2) + rounding
     mu = -math.inf
     if segment:
