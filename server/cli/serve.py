@@ -222,7 +222,7 @@ def main(args: argparse.Namespace) -> int:
     bone = config.bone
     say = functools.partial(print, flush=True)
     say(f"loading {bone} and warming up the kernels (the first start compiles them: "
-        "about 40 s, once)...")
+        "about a minute, once)...")
     t0 = time.monotonic()
     from ..api.journal import discard, discard_session
 
