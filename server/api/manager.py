@@ -41,6 +41,7 @@ from ..bone.shared import (
 )
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+from ..hotloop.errors import CommandError
 from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S, start_pool
 from ..model.params import CuttingParams
 from ..model.shapes import Burr, Sphere
@@ -65,6 +66,12 @@ STREAM_JUMP = 1 << 16
 #: Placement compares workers' measured tick work in steps of this, µs of tick per s (1 % of a
 #: core): below it, load is noise (an idle session's stray tick) and session count decides.
 WORK_STEP_US_PER_S = 10_000.0
+#: The HTTP status of each kind of failed hot-loop command (``hotloop.errors``).
+COMMAND_STATUS = {"invalid": 422, "not_found": 404, "conflict": 409, "unavailable": 503,
+                  "internal": 503}
+#: Kinds whose message reaches the caller as the loop said it; the others are prefixed with
+#: what failed.
+SAID_AS_IS = frozenset({"invalid", "not_found", "conflict"})
 
 
 class ApiError(Exception):
@@ -752,8 +759,9 @@ class ControlPlane:
             sent["config"] = config
 
     def call(self, command: str, worker: int | None = None, **kwargs: object) -> object:
-        """A hot-loop command, its failures as API errors: the loop's ValueError → 422, a
-        missing session → 404, a dead loop or anything else → 503. It goes to ``worker``,
+        """A hot-loop command, its failures as API errors by their kind (``COMMAND_STATUS``):
+        bad arguments → 422, a missing session → 404, a session id in use → 409, a dead loop
+        or anything else → 503. It goes to ``worker``,
         default the worker of the session it names (``session_id`` or ``spec``)."""
         if worker is None:
             spec = kwargs.get("spec")
@@ -766,13 +774,9 @@ class ControlPlane:
                      else CALL_TIMEOUT_S)
         try:
             return self.workers[worker].call(command, timeout_s=timeout_s, **kwargs)
-        except RuntimeError as exc:
-            text = str(exc)
-            if "ValueError" in text or "BoneFileError" in text:
-                raise ApiError(422, text.split("Error: ", 1)[-1]) from None
-            if "KeyError" in text:
-                raise ApiError(404, text.split("Error: ", 1)[-1].strip("'\"")) from None
-            raise ApiError(503, f"the hot loop cannot do it: {text}") from None
+        except CommandError as exc:
+            raise ApiError(COMMAND_STATUS[exc.kind], exc.message if exc.kind in SAID_AS_IS
+                           else f"the hot loop cannot do it: {exc.message}") from None
 
     # -- reading the bone ---------------------------------------------------------------------
     def snapshot_bone(self, session_id: int) -> Bone:

@@ -35,6 +35,7 @@ from ..haptics.stage import warm_up as warm_haptics
 from ..model.params import CuttingParams
 from ..realtime import HOT_LOOP_PRIORITY, enter_realtime, leave_realtime
 from .dispatch import Dispatcher
+from .errors import CommandError, SessionExists, classify
 from .loop import LOOP_COUNTERS, open_socket, serve
 from .session import Session, SessionConfig
 from .telemetry import TelemetrySlot
@@ -354,27 +355,29 @@ class HotLoopProcess:
         supervisor (``api.supervisor``) starts a new one.
 
         Raises:
-            RuntimeError: the loop is not running, did not answer in time, or the command
-                failed (message from it).
+            CommandError: kind ``unavailable`` when the loop is not running, did not answer
+                in time or exited; else the kind and message the command failed with in the
+                loop (``hotloop.errors``).
         """
         with self._lock:
             # Once: the supervisor may kill the loop (and close the pipe) meanwhile; a closed
             # pipe then raises OSError here, which means the same as EOF.
             conn = self._conn
             if conn is None:
-                raise RuntimeError("the hot loop is not running")
+                raise CommandError("unavailable", "the hot loop is not running")
             try:
                 conn.send((command, kwargs))
                 if not conn.poll(timeout_s):
                     self.wedged = f"{command!r} got no answer within {timeout_s:g} s"
                     self.kill()
-                    raise RuntimeError(f"the hot loop is not answering ({self.wedged}): "
+                    raise CommandError("unavailable",
+                                       f"the hot loop is not answering ({self.wedged}): "
                                        "it was stopped and is being restarted")
                 status, result = conn.recv()
             except (EOFError, OSError, BrokenPipeError):
-                raise RuntimeError("the hot-loop process has exited") from None
+                raise CommandError("unavailable", "the hot-loop process has exited") from None
         if status != "ok":
-            raise RuntimeError(result)
+            raise CommandError.from_data(result)
         return result
 
     def heartbeat_age_s(self) -> float:
@@ -597,7 +600,7 @@ def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lo
         except (EOFError, OSError):  # the parent is gone: do not outlive it
             command, kwargs = "stop", {}
         except Exception as exc:  # an unpicklable command
-            _send(conn, "error", f"bad command: {exc}")
+            _send(conn, "error", CommandError("invalid", f"bad command: {exc}").as_data())
             continue
         if command == "stop":
             stopping.set()
@@ -610,7 +613,7 @@ def _serve_commands(conn: Connection, dispatcher: Dispatcher, lock: threading.Lo
         try:
             result = _run_command(command, kwargs, dispatcher, lock)
         except Exception as exc:
-            _send(conn, "error", f"{command}: {type(exc).__name__}: {exc}")
+            _send(conn, "error", classify(exc).as_data())
         else:
             _send(conn, "ok", result)
 
@@ -636,7 +639,7 @@ def _run_command(command: str, kwargs: dict, dispatcher: Dispatcher,
         adding = command == "add_session"
         with lock:
             if adding and spec.session_id in dispatcher.sessions:
-                raise ValueError(f"session {spec.session_id} exists")
+                raise SessionExists(f"session {spec.session_id} exists")
         # Loading and warming are the slow part: on a dispatcher of its own, outside the lock;
         # the session goes in (or replaces the old one) between two packets.
         with _short_gil_turns():
@@ -771,6 +774,7 @@ def _send(conn: Connection, status: str, result: object) -> None:
         pass
     except Exception as exc:  # an unpicklable result must not end the command thread
         try:
-            conn.send(("error", f"the result could not be sent: {exc}"))
+            conn.send(("error", CommandError(
+                "internal", f"the result could not be sent: {exc}").as_data()))
         except Exception:
             pass
