@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import MutableMapping
+import re
+from collections.abc import Iterator, MutableMapping
 from functools import cache
+from importlib import metadata
 from pathlib import Path
 
 from . import __version__
@@ -22,27 +24,110 @@ from . import __version__
 ENV = "NUMBA_CACHE_DIR"
 
 
-#: The folders of ``burrforce.server`` and ``burrforce.proto``: the kernels and every module
-#: they take constants from (message layouts, state indices).
-SOURCE_ROOTS = (Path(__file__).resolve().parent, Path(__file__).resolve().parent.parent / "proto")
+#: The folders of ``burrforce.server`` and ``burrforce.proto`` and their import names.
+PACKAGE_ROOTS: tuple[tuple[Path, str], ...] = (
+    (Path(__file__).resolve().parent, "burrforce.server"),
+    (Path(__file__).resolve().parent.parent / "proto", "burrforce.proto"),
+)
+#: A module imports one of these at its top level iff numba compiles functions of it (numba
+#: itself, or the project's kernel decorators).
+KERNEL_IMPORTS = frozenset({"numba", "burrforce.server.hot_kernel"})
+#: The packages whose versions change what numba compiles, besides burrforce's own (which
+#: names the directory).
+COMPILER_DISTRIBUTIONS = ("numba", "llvmlite")
 
 
 @cache
-def kernels_digest(roots: tuple[Path, ...] = SOURCE_ROOTS) -> str:
-    """12 hex digits of SHA-256 over the server's and the protocol's modules (path and text).
+def kernels_digest(roots: tuple[tuple[Path, str], ...] = PACKAGE_ROOTS) -> str:
+    """12 hex digits of SHA-256 over what the compiled kernels are made of: the modules that
+    hold kernels, every module they import at their top level (transitively: the constants a
+    kernel compiles in, the kernels it calls), and numba's and llvmlite's versions.
+
     numba keys a cached kernel on its own file's timestamp only, not on the kernels it calls
     from other files nor on the constants it imports (a message layout, a state index): after
     an edit to ``voxels.py`` the cached ``bone_tick`` would silently run the old code. A
-    directory per digest makes any source edit start a fresh cache instead (a few ms to hash).
+    directory per digest makes such an edit start a fresh cache instead; an edit anywhere
+    else (a route, a benchmark, a docstring of the command line) keeps it. ``roots`` pairs a
+    source folder with its import name. See :func:`kernel_modules`.
     """
     digest = hashlib.sha256()
-    for root in roots:
-        for path in sorted(root.rglob("*.py")):
-            if "__pycache__" in path.parts:
-                continue
-            digest.update(f"{root.name}/{path.relative_to(root)}".encode() + b"\0"
-                          + path.read_bytes() + b"\0")
+    for name in COMPILER_DISTRIBUTIONS:
+        digest.update(f"{name}=={_version(name)}".encode() + b"\0")
+    for name, path in sorted(kernel_modules(roots).items()):
+        digest.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()[:12]
+
+
+def kernel_modules(roots: tuple[tuple[Path, str], ...] = PACKAGE_ROOTS) -> dict[str, Path]:
+    """The modules :func:`kernels_digest` covers, by import name: those that import numba or
+    the kernel decorators at their top level, and the closure of their top-level imports of
+    modules under ``roots``.
+
+    Read from the source, nothing imported, and by pattern rather than by parsing (``ast``
+    takes seconds for the whole package, and every ``burrforce`` command computes this):
+    an import statement that starts a line is a top-level one. Imports inside functions are
+    left out (a kernel cannot run them, nor compile in what they bring); so are indented
+    ones in a top-level ``try`` or ``if``, which the package keeps for the standard library
+    and third parties only. A docstring line that reads like an import only widens the set.
+    """
+    files = {name: path for root, package in roots for name, path in _modules(root, package)}
+    imports = {name: _top_level_imports(name, path, files) for name, path in files.items()}
+    pending = [name for name, (_, kernel) in imports.items() if kernel]
+    found: dict[str, Path] = {}
+    while pending:
+        name = pending.pop()
+        if name not in found:
+            found[name] = files[name]
+            pending.extend(imports[name][0])
+    return found
+
+
+def _modules(root: Path, package: str) -> Iterator[tuple[str, Path]]:
+    for path in sorted(root.rglob("*.py")):
+        if "__pycache__" in path.parts:
+            continue
+        parts = path.relative_to(root).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        yield ".".join((package, *parts)), path
+
+
+#: ``from MODULE import NAMES`` (NAMES possibly parenthesized over lines) or ``import
+#: MODULES``, at the start of a line.
+_IMPORT = re.compile(rb"^(?:from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)"
+                     rb"|import[ \t]+([^\n#;]+))", re.MULTILINE)
+_NAME = re.compile(rb"[\w.]+")
+
+
+def _top_level_imports(name: str, path: Path,
+                       files: dict[str, Path]) -> tuple[set[str], bool]:
+    """(the modules under the roots that ``name`` imports at its top level, whether it
+    imports a kernel marker)."""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    targets: set[str] = set()
+    for source, names, plain in _IMPORT.findall(path.read_bytes()):
+        if plain:
+            targets.update(n.decode() for n in _NAME.findall(plain.split(b" as ")[0])
+                           if n != b"as")
+            continue
+        source = source.decode()
+        level = len(source) - len(source.lstrip("."))
+        module = source[level:]
+        if level:
+            base = package[:len(package) - level + 1]
+            module = ".".join(base + ([module] if module else []))
+        targets.add(module)
+        # ``from . import voxels`` imports a module, not a name of the package.
+        targets.update(f"{module}.{n.decode()}" for n in _NAME.findall(names))
+    kernel = any(t == m or t.startswith(m + ".") for t in targets for m in KERNEL_IMPORTS)
+    return {t for t in targets if t in files and t != name}, kernel
+
+
+def _version(distribution: str) -> str:
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return "none"
 
 
 def default_cache_dir(environ: MutableMapping[str, str] | None = None) -> Path:

@@ -6,6 +6,7 @@ saved")."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -43,23 +44,78 @@ def _finish(proc: subprocess.Popen) -> str:
 _DIRNAME = f"numba-{__version__}-{compile_cache.kernels_digest()}"
 
 
+def _digest(roots) -> str:
+    compile_cache.kernels_digest.cache_clear()
+    try:
+        return compile_cache.kernels_digest(roots)
+    finally:
+        compile_cache.kernels_digest.cache_clear()
+
+
 def test_the_kernels_digest_follows_every_module_a_kernel_may_read(tmp_path):
     (tmp_path / "server" / "bone").mkdir(parents=True)
+    (tmp_path / "server" / "api").mkdir()
     (tmp_path / "proto").mkdir()
     kernel = tmp_path / "server" / "bone" / "voxels.py"
-    kernel.write_text("from numba import njit\n")
+    kernel.write_text("from numba import njit\n\nfrom ...proto.messages import POSE\n")
     layout = tmp_path / "proto" / "messages.py"  # constants a kernel compiles in
     layout.write_text("POSE = 1\n")
-    roots = (tmp_path / "server", tmp_path / "proto")
-    first = compile_cache.kernels_digest(roots)
-    assert compile_cache.kernels_digest(roots) == first
+    route = tmp_path / "server" / "api" / "routes.py"  # imports the kernel, is none
+    route.write_text("from ..bone.voxels import njit\n")
+    roots = ((tmp_path / "server", "burrforce.server"), (tmp_path / "proto", "burrforce.proto"))
+    first = _digest(roots)
+    assert _digest(roots) == first
+    route.write_text("from ..bone.voxels import njit\nROUTE = 2\n")
+    assert _digest(roots) == first
     layout.write_text("POSE = 2\n")
-    compile_cache.kernels_digest.cache_clear()
-    second = compile_cache.kernels_digest(roots)
+    second = _digest(roots)
     assert second != first
-    kernel.write_text("from numba import njit\nLIMIT = 2\n")
-    compile_cache.kernels_digest.cache_clear()
-    assert compile_cache.kernels_digest(roots) not in (first, second)
+    kernel.write_text("from numba import njit\n\nfrom ...proto.messages import POSE\nLIMIT = 2\n")
+    assert _digest(roots) not in (first, second)
+
+
+def test_the_digest_covers_the_kernels_and_what_they_import_and_nothing_else():
+    modules = compile_cache.kernel_modules()
+    for kernel in ("server.bone.voxels", "server.bone.carve", "server.model.kernels",
+                   "server.hotloop.stages", "server.hot_kernel", "server.haptics.coupling"):
+        assert f"burrforce.{kernel}" in modules
+    # Constants compiled into kernels, from modules without kernels of their own.
+    assert "burrforce.proto.messages" in modules
+    assert "burrforce.server.model.params" in modules
+    for name in modules:
+        assert not name.startswith(("burrforce.server.api", "burrforce.server.cli.serve",
+                                    "burrforce.server.bench.accuracy", "burrforce.server.ui",
+                                    "burrforce.server.report", "burrforce.proto.codec")), name
+
+
+def _source_copy(tmp_path):
+    server = Path(compile_cache.__file__).resolve().parent
+    shutil.copytree(server, tmp_path / "server",
+                    ignore=shutil.ignore_patterns("__pycache__", "vendor"))
+    shutil.copytree(server.parent / "proto", tmp_path / "proto",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    return ((tmp_path / "server", "burrforce.server"), (tmp_path / "proto", "burrforce.proto"))
+
+
+@pytest.mark.parametrize("edited", ["api/routes_sessions.py", "bench/accuracy.py",
+                                    "cli/serve.py"])
+def test_editing_a_route_or_a_benchmark_keeps_the_compiled_kernels(tmp_path, edited):
+    roots = _source_copy(tmp_path)
+    before = _digest(roots)
+    assert before == compile_cache.kernels_digest()  # the copy digests as the package does
+    path = tmp_path / "server" / edited
+    path.write_text(path.read_text() + "\n# an edit\n")
+    assert _digest(roots) == before
+
+
+@pytest.mark.parametrize("edited", ["bone/voxels.py", "model/kernels.py", "hot_kernel.py",
+                                    "model/params.py"])
+def test_editing_a_kernel_or_what_it_imports_renews_them(tmp_path, edited):
+    roots = _source_copy(tmp_path)
+    before = _digest(roots)
+    path = tmp_path / "server" / edited
+    path.write_text(path.read_text() + "\n# an edit\n")
+    assert _digest(roots) != before
 
 
 def test_default_is_under_xdg_cache_home_and_versioned(tmp_path):

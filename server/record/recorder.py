@@ -28,7 +28,7 @@ import threading
 from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -55,7 +55,21 @@ from .format import (
 if TYPE_CHECKING:
     from ...proto.messages import Pose
     from ..bone.engine import BoneEngine
-    from ..hotloop.session import Session
+
+
+class Session(Protocol):
+    """What a recorder reads of the session it records (the hot loop's ``Session`` is one):
+    the room below the hot loop names only what it uses, so it never imports the loop."""
+
+    id: int
+    engine: BoneEngine
+    #: The session's settings: ``frame``, ``placement_position``/``_orientation``, ``model``,
+    #: ``carve``, ``vibration`` (the hot loop's ``SessionConfig``).
+    config: Any
+    #: The engine frame's transform of the session (the loop's ``EngineTransform``).
+    transform: Any
+    tool_axis: np.ndarray
+    recorder: Recorder | None
 
 DEFAULT_MAX_BYTES = 2 << 30
 DEFAULT_CHUNK_ROWS = 4096
