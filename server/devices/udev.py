@@ -6,21 +6,21 @@ knows; its ``70-`` prefix matters: ``TAG+="uaccess"`` (access for the user logge
 machine's seat) is only honoured by rules that run before systemd's ``73-seat-late.rules``.
 Users on a machine without a local seat (SSH, a container host) join the ``plugdev`` group.
 
-Sources of the identities: Novint Falcon, libnifalcon (``devices.falcon.protocol``); Force
+Sources of the identities (the ids of the devices burrforce drives itself are in
+``devices.usb_ids``): Novint Falcon, libnifalcon; Force
 Dimension, USB vendor id 0x1451 for all its devices (Force Dimension's udev rules as quoted
 by SDK users; the forcedimension-core wheel holds no USB ids); 3D Systems Touch, a CDC-ACM
 serial device 0301:2988 (jhu-saw/sawSensablePhantom); Haply Inverse3, vendor ids 0x2FE3 and
 0x16C0 as listed in the device detection of the HaplyHardwareAPI 0.1.13 wheel (not checked
 on hardware; 0x16C0 is a shared vendor id, so a match there is a candidate only); the
-burrforce vibration board, ``devices.actuators.board_protocol``.
+burrforce vibration board (``devices.actuators.board_protocol``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .actuators import board_protocol
-from .falcon import protocol as falcon_protocol
+from .usb_ids import BOARD_PID, BOARD_VID, FALCON_PID, FALCON_VID
 
 #: Where the rules go, and the two commands that make udev apply them (then replug).
 RULES_PATH = "/etc/udev/rules.d/70-burrforce.rules"
@@ -69,12 +69,12 @@ class UsbIdentity:
 def known_identities() -> tuple[UsbIdentity, ...]:
     """Every USB identity a burrforce back-end drives."""
     ids = [
-        UsbIdentity("falcon", "Novint Falcon", falcon_protocol.VID, falcon_protocol.PID),
+        UsbIdentity("falcon", "Novint Falcon", FALCON_VID, FALCON_PID),
         UsbIdentity("forcedimension", "Force Dimension device", 0x1451, None),
         UsbIdentity("openhaptics", "3D Systems Touch (USB)", 0x0301, 0x2988, node="tty"),
         UsbIdentity("haply", "Haply Inverse3", 0x2FE3, None, node="tty", candidate=True),
         UsbIdentity("haply", "Haply Inverse3", 0x16C0, None, node="tty", candidate=True),
-        UsbIdentity("usb", "burrforce vibration board", board_protocol.VID, board_protocol.PID),
+        UsbIdentity("usb", "burrforce vibration board", BOARD_VID, BOARD_PID),
     ]
     return tuple(ids)
 

@@ -72,11 +72,10 @@ import math
 import struct
 from dataclasses import dataclass
 
-# -- USB identity --------------------------------------------------------------------------
-#: pid.codes (0x1209) *test* PID: fine for development boards and CI emulation only; a product
-#: built for others needs its own PID (pid.codes grants them for open hardware).
-VID = 0x1209
-PID = 0x0001
+from ..usb_ids import BOARD_PID, BOARD_VID
+
+# -- USB identity (the ids: devices.usb_ids) -----------------------------------------------
+VID, PID = BOARD_VID, BOARD_PID
 INTERFACE_CLASS = 0xFF
 MANUFACTURER = "burrforce"
 PRODUCT = "burrforce vibration board"

@@ -22,12 +22,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from typing import TypeVar
 
+from ..usb_ids import FALCON_PID, FALCON_VID
+
 T = TypeVar("T")
 
-# --- USB identity -------------------------------------------------------------------------
+# --- USB identity (the ids: devices.usb_ids) ----------------------------------------------
+VID, PID = FALCON_VID, FALCON_PID
 
-VID = 0x0403
-PID = 0xCB48
 INTERFACE = 0
 EP_OUT = 0x02
 EP_IN = 0x81
