@@ -137,9 +137,9 @@ def _add_device(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_client(sub: argparse._SubParsersAction) -> None:
-    from ...client import demo
+    from . import client_demo
 
-    demo.add_parser(sub)
+    client_demo.add_parser(sub)
 
 
 def _add_calibrate(sub: argparse._SubParsersAction) -> None:

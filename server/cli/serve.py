@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 from ...client import connection
-from ...client.demo import EXIT_GAVE_WAY
 from ...proto.frames import FRAMES
 from ...proto.tag import parse_key
 from ..api.config import (
@@ -33,6 +32,7 @@ from ..api.config import (
 )
 from ..haptics.profiles import PROFILES
 from .args import float_in, int_at_least, int_in
+from .client_demo import EXIT_GAVE_WAY
 from .device import add_loop_options, loop_config
 
 STATUS_INTERVAL_S = 2.0
