@@ -1,6 +1,6 @@
 """The real-time scheduler (SCHED_FIFO) for the threads that must run the moment they are
 woken: a device's servo loop (``devices.loop``) and, with ``serve --realtime``, each hot
-loop's packet thread (``hotloop.process``).
+loop's packet thread (``hotloop.child``).
 
 A SCHED_FIFO thread preempts every normal task as soon as it is runnable, instead of waiting
 its turn behind them. Allowed for root, with CAP_SYS_NICE, or an ``RLIMIT_RTPRIO`` of at

@@ -6,7 +6,7 @@ import numpy as np
 
 from burrforce.server.api.metrics import LoopStats
 from burrforce.server.hotloop.dispatch import Dispatcher
-from burrforce.server.hotloop.process import SessionSpec, build_session
+from burrforce.server.hotloop.spec import SessionSpec, build_session
 
 
 def test_tick_histogram_follows_a_new_session_under_a_reused_id():

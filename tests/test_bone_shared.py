@@ -108,7 +108,7 @@ def test_an_engine_on_a_shared_bone_matches_one_built_the_old_way(tmp_path, monk
 
 
 def test_a_session_built_from_the_shared_file_matches_the_old_way(tmp_path):
-    from burrforce.server.hotloop.process import SessionSpec, build_session
+    from burrforce.server.hotloop.spec import SessionSpec, build_session
 
     bone = _bone()
     private = BoneEngine(bone.grid, bone.materials)

@@ -614,7 +614,7 @@ def test_every_valid_form_of_a_pose_gets_the_same_answer_and_oversized_none(serv
 def test_a_spare_warms_at_the_lowest_priority_and_serves_at_the_loops():
     """A warming spare must not take CPU from loops already serving; once warm, and so once
     it may replace one, it runs at their priority (where raising it is allowed: as root)."""
-    from burrforce.server.hotloop.process import HOT_LOOP_NICE, SPARE_WARMING_NICE
+    from burrforce.server.hotloop.child import HOT_LOOP_NICE, SPARE_WARMING_NICE
 
     hot = HotLoopProcess(HotLoopConfig(sessions=()))
     seen: set[int] = set()

@@ -34,7 +34,7 @@ from burrforce.server.api.telemetry import TelemetryReader, TickRing, newest_tic
 from burrforce.server.haptics.config import HapticsConfig
 from burrforce.server.haptics.profiles import PROFILES
 from burrforce.server.hotloop.dispatch import Dispatcher
-from burrforce.server.hotloop.process import SessionSpec, build_session
+from burrforce.server.hotloop.spec import SessionSpec, build_session
 from burrforce.server.record import start_recording
 
 TOKEN = "telemetry-test-token-0123456789"

@@ -226,7 +226,7 @@ def test_a_busy_port_in_the_workers_range_is_refused_before_anything_starts(tmp_
                                       ("50000 100000\n", 1), ("150000 100000\n", 2),
                                       ("garbage\n", None)])
 def test_usable_cores_follow_a_cgroup_cpu_quota(tmp_path, text, cap):
-    from burrforce.server.hotloop.process import usable_cores
+    from burrforce.server.hotloop.pool import usable_cores
 
     cpus = len(os.sched_getaffinity(0))
     path = tmp_path / "cpu.max"

@@ -42,7 +42,8 @@ from ..bone.shared import (
 from ..haptics import PROFILES, DeviceProfile, HapticsConfig
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
 from ..hotloop.errors import CommandError
-from ..hotloop.process import CALL_TIMEOUT_S, START_TIMEOUT_S, start_pool
+from ..hotloop.handle import CALL_TIMEOUT_S, START_TIMEOUT_S
+from ..hotloop.pool import start_pool
 from ..model.params import CuttingParams
 from ..model.shapes import Burr, Sphere
 from ..model.vibration import VibrationParams

@@ -118,7 +118,7 @@ def _generator_scheduling(report: dict) -> Iterator[None]:
     send (measured: p99.9 6.7–8.6 ms against 4.1–5.5 at 8 sessions), and its late sends
     would spread the burst it is meant to send. ``report["generator_nice"]`` gets the
     niceness it ran at, ``report["generator_realtime"]`` whether it was SCHED_FIFO."""
-    from ..hotloop.process import raise_priority
+    from ..hotloop.child import raise_priority
     from ..realtime import HOT_LOOP_PRIORITY, enter_realtime, leave_realtime
 
     nice = os.getpriority(os.PRIO_PROCESS, 0)

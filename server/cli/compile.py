@@ -51,7 +51,7 @@ def _hot_loop() -> None:
     from ..bone.shared import SharedBone, publish, run_directory
     from ..haptics.stage import warm_up as warm_haptics
     from ..hotloop.dispatch import Dispatcher
-    from ..hotloop.process import SessionSpec, build_session
+    from ..hotloop.spec import SessionSpec, build_session
 
     bone = phantom("workpiece", 0.5)
     folder = run_directory()

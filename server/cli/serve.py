@@ -209,7 +209,7 @@ def main(args: argparse.Namespace) -> int:
                          "one (the device cuts with its own hand)")
     config = load_config(args.config, flags)
     if config.workers is None:
-        from ..hotloop.process import default_workers
+        from ..hotloop.pool import default_workers
 
         config = dataclasses.replace(config, workers=default_workers())
     if config.no_auth and not is_loopback(config.host):

@@ -1,4 +1,10 @@
-"""A session: one engine's burr cutting one bone, in that engine's frame and units."""
+"""A session: one engine's burr cutting one bone, in that engine's frame and units.
+
+:class:`Session` owns a stream's state (the handshake, the sequence, the velocity estimate),
+the per-packet tick around its ``BoneEngine`` and its statistics. How it reads its engine's
+packets is a ``session_config.SessionConfig``; where its per-packet state arrays live, private
+memory or a control plane's telemetry file, is ``telemetry``.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +12,6 @@ import itertools
 import math
 import secrets
 import time
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,7 +35,6 @@ from ...proto.tag import Tagger
 from ..bone.carve import TOUCH_FORBIDDEN
 from ..bone.engine import BoneEngine
 from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
-from ..haptics.config import HapticsConfig
 from ..haptics.coupling import CLAMPED, PLACED, coupled_finish, coupled_predict, raw_limits
 from ..haptics.layout import P_SHAFT_RADIUS, S_PERIOD
 from ..haptics.stage import HapticStage
@@ -44,8 +47,8 @@ from ..model.kernels import (
     OUT_POWER,
     OUT_TORQUE,
 )
-from ..model.vibration import VibrationParams
 from .bucket import TokenBucket
+from .session_config import ZERO3, SessionConfig, unit_vector
 from .stages import (
     IN_BAD_VALUE,
     IN_RESET,
@@ -86,6 +89,7 @@ from .stages import (
     reply_raw,
     ring_views,
 )
+from .telemetry import TICK_TIMES_KEPT, TelemetrySlot
 from .wire import (
     P_FLAGS,
     P_SEQ,
@@ -97,79 +101,12 @@ from .wire import (
     pose_arrays,
 )
 
-if TYPE_CHECKING:
-    from .telemetry import TelemetrySlot
-
-ZERO3 = (0.0, 0.0, 0.0)
-#: Model-stage times kept per session for statistics (a ring buffer).
-TICK_TIMES_KEPT = 8192
 _TICK_EPOCHS = itertools.count(1)
 _STREAM_MODULUS = 1 << 32
 #: NEW_STREAM / WRONG_STREAM notices per second per session, and the burst: a handshake
 #: needs one or two; a session of its own so a flood elsewhere cannot starve it.
 STREAM_NOTICE_RATE_HZ = 100.0
 STREAM_NOTICE_BURST = 20.0
-
-
-@dataclass(frozen=True)
-class SessionConfig:
-    """How a session reads its engine's packets.
-
-    Attributes:
-        frame: engine frame name (``proto.frames.FRAMES``).
-        tool_axis: the tool axis in the tool's local frame (from the burr toward the handle),
-            engine axes; default the frame's.
-        placement_position, placement_orientation: where the server frame (the bone's world)
-            lies in the engine's world: engine units and an engine quaternion (x, y, z, w).
-        gap_s: a longer silence between accepted packets (client clock) resets the velocity
-            estimate.
-        max_speed_mm_s: an estimated burr speed above this is a teleport: the estimate is
-            reset, not used.
-        model: run the bone stage (carving, force). Off, the session answers with zero force:
-            the protocol alone (what ``bench latency`` calls the overhead).
-        carve: remove bone (off: forces from the bone as it is).
-        vibration: vibration parameters, or None for no vibration.
-        haptics: the output (raw or coupled) and the device it is for (``HapticsConfig``).
-    """
-
-    frame: str = frames.DEFAULT_FRAME
-    tool_axis: frames.Vec3 | None = None
-    placement_position: frames.Vec3 = ZERO3
-    placement_orientation: frames.Quat = (0.0, 0.0, 0.0, 1.0)
-    gap_s: float = 0.05
-    max_speed_mm_s: float = 2000.0
-    model: bool = True
-    carve: bool = True
-    vibration: VibrationParams | None = field(default_factory=VibrationParams)
-    haptics: HapticsConfig = field(default_factory=HapticsConfig)
-
-    def __post_init__(self) -> None:
-        frames.frame(self.frame)
-        if self.tool_axis is not None:  # stored as unit vectors (frozen: set directly)
-            object.__setattr__(self, "tool_axis", _unit("tool_axis", self.tool_axis))
-        for name, value in (("gap_s", self.gap_s), ("max_speed_mm_s", self.max_speed_mm_s)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not 0.0 < value < math.inf:
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if len(self.placement_position) != 3 or not all(
-                math.isfinite(x) for x in self.placement_position):
-            raise ValueError("placement_position must be 3 finite numbers")
-        object.__setattr__(self, "placement_orientation",
-                           _unit("placement_orientation", self.placement_orientation, 4))
-
-
-def _unit(name: str, v: tuple[float, ...], n: int = 3) -> tuple[float, ...]:
-    if len(v) != n or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
-        raise ValueError(f"{name} must be {n} finite numbers, got {v!r}")
-    # Scaled first: a huge but finite vector must not overflow to an infinite norm.
-    scale = max(abs(x) for x in v)
-    if scale == 0.0:
-        raise ValueError(f"{name} must not be zero")
-    w = [x / scale for x in v]
-    norm = math.sqrt(sum(x * x for x in w))
-    if norm * scale < 1e-6:
-        raise ValueError(f"{name} must not be zero")
-    return tuple(x / norm for x in w)
 
 
 class Session:
@@ -260,7 +197,7 @@ class Session:
         self.transform = frames.Transform(frame, config.placement_position,
                                           config.placement_orientation, grid.direction,
                                           grid.origin_mm)
-        self.tool_axis = _unit("tool_axis", config.tool_axis or frame.tool_axis)
+        self.tool_axis = unit_vector("tool_axis", config.tool_axis or frame.tool_axis)
         # Read per packet: kept as plain attributes, not looked up through the config.
         self._gap_us = config.gap_s * 1e6
         self._max_speed2 = config.max_speed_mm_s ** 2

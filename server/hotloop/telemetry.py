@@ -34,10 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .session import TICK_TIMES_KEPT
 from .stages import K_REPLY, K_SIZE, M_REPLY, M_SIZE, W_LAST_FORCE, W_P, W_RPM
 from .wire import REPLY_FLOATS, REPLY_INTS
 
+#: Model-stage times kept per session for statistics (a ring buffer, ``Session.tick_ns``):
+#: in a slot here, or in private memory for a session without a telemetry file.
+TICK_TIMES_KEPT = 8192
 PAGE = 4096
 MAGIC = 0x6275727274656C31  # "burrtel1"
 #: Header slots (int64).

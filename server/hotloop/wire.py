@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...proto.codec import encode_pose
 from ...proto.messages import (
     MAX_REPLY_BYTES,
     MAX_REQUEST_BYTES,
@@ -304,8 +305,6 @@ def encode_reply_into(out, reply_i, reply_f, tagged):
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels before serving."""
-    from ...proto.codec import encode_pose
-
     rx, pose_i, pose_f, tx, reply_i = new_buffers()
     data = encode_pose(Pose(1, 2, 3, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, True))
     rx[:len(data)] = np.frombuffer(data, np.uint8)
