@@ -22,13 +22,13 @@ import json
 import multiprocessing
 import os
 import socket
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from . import runner
 from .serve_process import spawn_serve
 from .timing import machine_line
 
@@ -207,8 +207,8 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "flood", help="a keyed session's round trip while junk floods the UDP port",
+    p = runner.add_bench(
+        sub, "flood", main, help="a keyed session's round trip while junk floods the UDP port",
         description="Stream a keyed session at 1 kHz through `burrforce serve` while another "
                     "process floods its UDP port (random bytes, forged POSEs, unknown "
                     "sessions; one or many senders); report lost replies and round trips "
@@ -217,15 +217,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="flood datagrams per second. Default 100000")
     p.add_argument("--phase-s", type=float, default=5.0,
                    help="seconds per phase (quiet, flood, after). Default 5")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    md, js = write_results(run(say, args.rate, args.phase_s), args.out)
-    say(f"wrote {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    return runner.report(args, *write_results(run(runner.say, args.rate, args.phase_s), out))

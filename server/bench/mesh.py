@@ -19,13 +19,13 @@ import argparse
 import datetime as dt
 import json
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from . import runner
 from .serve_process import spawn_serve
 from .timing import machine_line
 
@@ -238,22 +238,14 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "mesh", help="mesh chunks: sizes, meshing time, WebSocket vs REST latency",
+    p = runner.add_bench(
+        sub, "mesh", main, help="mesh chunks: sizes, meshing time, WebSocket vs REST latency",
         description="Chunk meshes of the phantoms per chunk size, updates during a groove, "
                     "and how fast an engine's copy follows over the WebSocket and over REST "
                     "polling. Writes OUT/mesh.md and mesh.json.")
     p.add_argument("--no-live", action="store_true", help="skip the live server runs")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    md, js = write_results(run(say, not args.no_live), args.out)
-    print(md.read_text())
-    say(f"results written to {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    return runner.report(args, *write_results(run(runner.say, not args.no_live), out))
