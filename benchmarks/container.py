@@ -20,7 +20,6 @@ the last CPU, the client on the first, as in ``bench latency``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
 import json
 import shutil
@@ -38,7 +37,6 @@ import numpy as np
 from burrforce.server.bench import runner
 from burrforce.server.bench.latency import CHUNK, GrooveCut, StreamClient, pin_cpus, run_stats
 from burrforce.server.bench.serve_process import spawn_serve
-from burrforce.server.bench.timing import machine_line
 from burrforce.server.cli.args import int_in
 from support.podman import HTTP_PORT, UDP_PORT, Podman, PodmanError, free_port
 
@@ -155,11 +153,8 @@ def run(samples: int, build: bool = True, progress=None) -> dict:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "container.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+    result, json_path = runner.save_json(out, "container", result)
+    stamp = result["date"]
     runs = {r["mode"]: r for r in result["runs"]}
     bare = runs["bare"]["p50_us"]
     build = (f"{result['build_seconds']:.0f} s" if result["build_seconds"] is not None

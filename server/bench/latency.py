@@ -45,7 +45,6 @@ the reply's arrival (before decoding).
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
 import json
 import math
@@ -66,7 +65,6 @@ from ...proto.messages import FLAG_RESET_VELOCITY, NEW_STREAM, STATUS_CUTTING, N
 from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
 from . import runner
-from .timing import machine_line
 
 MODES = ("echo", "overhead", "cutting", "blocking", "realtime", "watched", "minimal", "hogged",
          "hogged blocking", "hogged realtime")
@@ -455,11 +453,8 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
 def write_results(result: dict, out: Path,
                   page_lines: Sequence[str] = ()) -> tuple[Path, Path]:
     """OUT/latency.md (ending in ``page_lines``, the live-view section) and latency.json."""
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "latency.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+    result, json_path = runner.save_json(out, "latency", result)
+    stamp = result["date"]
     echo, overhead = result["echo_p50_us"], result["overhead_p50_us"]
     lines = [
         "# Round-trip latency (`burrforce bench latency`)",

@@ -16,7 +16,6 @@ back to back.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import shutil
@@ -31,7 +30,6 @@ import numpy as np
 from ...proto.tag import new_key
 from ..cli.args import float_in, int_in
 from . import runner
-from .timing import machine_line
 
 STREAM_SESSION = 1
 LOAD_SESSION = 2
@@ -197,11 +195,8 @@ def run(size: int, loads: int, quiet_s: float, rate_hz: float = 1000.0, progress
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "load-while-streaming.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+    result, json_path = runner.save_json(out, "load-while-streaming", result)
+    stamp = result["date"]
 
     def row(name: str, s: dict) -> str:
         if not s["samples"]:

@@ -16,8 +16,6 @@ REPLY that announced a new ``bone_version`` arriving, to the copy holding that v
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import math
 import tempfile
 import time
@@ -27,7 +25,6 @@ import numpy as np
 
 from . import runner
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 CHUNK_BRICKS = (1, 2, 4, 8)
 BONES = (("workpiece", 0.1), ("temporal", 0.2))
@@ -195,11 +192,8 @@ def run(progress=print, live_runs: bool = True) -> dict:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "mesh.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "mesh", result)
+    stamp = result["date"]
     lines = [
         "# Mesh chunks (`burrforce bench mesh`)", "",
         f"{stamp}; {result['machine']}. One run.", "",

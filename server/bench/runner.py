@@ -17,6 +17,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from .timing import machine_line
+
 Main = Callable[[argparse.Namespace], int]
 
 #: ``--json``'s help for a bench that prints its rows.
@@ -52,6 +54,19 @@ def out_dir(args: argparse.Namespace) -> Path:
         args.out = Path(f"burrforce-bench-{args.bench_name}-{stamp}")
         say(f"results will be written to {args.out}/ (--out DIR to choose)")
     return args.out
+
+
+def save_json(out: Path, name: str, result: dict, utc: bool = False) -> tuple[dict, Path]:
+    """Write OUT/NAME.json (creating OUT): ``result`` with the run's ``date`` (local time, or
+    UTC) and this ``machine`` (``timing.machine_line``). Returns what it wrote, for the page
+    to quote, and where."""
+    out.mkdir(parents=True, exist_ok=True)
+    now = dt.datetime.now(dt.timezone.utc) if utc else dt.datetime.now()
+    stamp = now.strftime("%Y-%m-%d %H:%M UTC" if utc else "%Y-%m-%d %H:%M")
+    result = {**result, "date": stamp, "machine": machine_line()}
+    path = out / f"{name}.json"
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    return result, path
 
 
 def report(args: argparse.Namespace, page: Path, *others: Path, rows: Any = None,

@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import datetime as dt
 import gc
 import json
 import os
@@ -69,7 +68,6 @@ from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, HELLO_TRIES, RPM, GrooveCut
 from .procstat import cpu_s
 from .serve_process import spawn_serve
 from .soak import Rest
-from .timing import machine_line
 
 DEFAULT_SESSIONS = (1, 2, 4, 8, 16)
 VOXEL_MM = 0.1
@@ -493,11 +491,8 @@ def _f(value: float | None, fmt: str = ".0f") -> str:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result = {**result, "date": stamp, "machine": machine_line(), "target": TARGET}
-    js = out / "sessions.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "sessions", result | {"target": TARGET}, utc=True)
+    stamp = result["date"]
     workers = result["workers_option"]
     lines = [
         "# Concurrent cutting sessions at 1 kHz (`burrforce bench sessions`)", "",

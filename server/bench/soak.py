@@ -22,7 +22,6 @@ p99 ≤ 2 × quiet p99.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import multiprocessing
@@ -41,7 +40,6 @@ import numpy as np
 from . import runner
 from .flood import flood
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 PHASES = (("quiet", 0.05, 0.30), ("flood", 0.30, 0.40), ("after_flood", 0.40, 0.60),
           ("after_kill", 0.60, 1.00))
@@ -294,11 +292,8 @@ def summarize(clients, duration_s: float, killed_at: float, rss, churn_stats: di
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "soak.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "soak", result, utc=True)
+    stamp = result["date"]
     r = result
 
     def ok(flag: bool) -> str:

@@ -12,8 +12,6 @@ loaded: a warm run must save nothing.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import os
 import shutil
 import statistics
@@ -28,7 +26,6 @@ from ...client.udp import BurrClient
 from . import runner
 from .procstat import cpu_s
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 #: (name, serve arguments).
 CASES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -141,11 +138,8 @@ def run(runs: int = 5, cold: bool = True, progress=print,
 
 
 def write_results(result: dict, out: Path, note: str = "") -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "startup.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "startup", result)
+    stamp = result["date"]
     lines = [
         "# Start-up (`burrforce bench startup`)", "",
         f"{stamp}; {result['machine']}; {result['python']}.", "",
