@@ -11,7 +11,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from burrforce.server.bench.chromium import (  # noqa: F401 - the tests import them from here
+from support.chromium import (  # noqa: F401 - the tests import them from here
     CHROMIUM,
     NO_GPU_ARGS,
     WEBGL_ARGS,

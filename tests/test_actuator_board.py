@@ -206,7 +206,7 @@ def test_constants():
 # -- the USB driver against the emulated board -------------------------------------------------
 
 try:
-    from burrforce.server.devices.emulation.launcher import (
+    from support.emulation.launcher import (
         EmulatedUsb,
         emulation_unavailable_reason,
     )

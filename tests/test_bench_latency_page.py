@@ -7,7 +7,8 @@ import math
 
 import pytest
 
-from burrforce.server.bench import chromium, latency_page
+from benchmarks import latency_page
+from support import chromium
 
 
 def test_the_page_part_measures_both_modes_and_the_open_page_was_live():

@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from burrforce.server.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 JSON_KEYS = {"orientation", "angle_deg", "feed_N", "lateral_N", "normal_N", "force_N",
              "torque_Nmm", "power_W", "mean_speed_m_s"}
@@ -160,3 +163,29 @@ def test_serve_demo_starts_over_the_loaded_bone():
     x, y = demo_start_mm(info)
     assert 0.0 < x and x + 10.0 < 26.0 and abs(y) < 1.0
     assert demo_start_mm(None) == (-5.0, 0.0)
+
+
+def test_bench_accuracy_in_a_checkout_leaves_git_status_clean(tmp_path):
+    """Run as a user would, inside a checkout (its tracked results page and .gitignore): the
+    page stays as it is, the run's results go to a fresh folder of its own, named on stderr,
+    and ``git status`` stays clean."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                              cwd=tmp_path, check=True, capture_output=True, text=True).stdout
+
+    (tmp_path / "benchmarks").mkdir()
+    (tmp_path / "benchmarks" / "accuracy.md").write_text("the tracked page\n")
+    (tmp_path / ".gitignore").write_text((ROOT / ".gitignore").read_text())
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "checkout")
+    out = subprocess.run(
+        [sys.executable, "-m", "burrforce.server.cli", "bench", "accuracy", "--voxel-mm", "0.4",
+         "--elements", "512", "--measure-mm", "0.3", "--no-oblique", "--no-plot",
+         "--no-edges"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert git("status", "--porcelain", "--untracked-files=all") == ""
+    assert [p.name for p in (tmp_path / "benchmarks").iterdir()] == ["accuracy.md"]
+    (fresh,) = tmp_path.glob("burrforce-bench-accuracy-*")
+    assert sorted(p.name for p in fresh.iterdir()) == ["accuracy.json", "accuracy.md"]
+    assert fresh.name in out.stderr and "| aligned | 0.4 | 512 |" in out.stdout

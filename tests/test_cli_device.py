@@ -10,12 +10,15 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import httpx
+import pytest
 
 from burrforce.client import connection
 
 CLI = [sys.executable, "-m", "burrforce.server.cli"]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
@@ -67,6 +70,33 @@ def test_bench_device_json_rows():
         assert key in row
     assert row["device"] == "sim" and 0.0 < row["watchdog_ms"] <= 50.0
     assert row["cycle_cpu_us"] > 0.0
+
+
+def test_bench_device_without_a_falcon_says_why_its_row_is_skipped():
+    """The installed command measures a Falcon plugged in here, never an emulated one."""
+    out = _run("bench", "device", "--devices", "falcon", "--no-write", "--json")
+    assert out.returncode == 0, out.stderr
+    (row,) = json.loads(out.stdout)
+    if "skipped" not in row:
+        pytest.skip("a Falcon is plugged in here (allowed in CI)")
+    assert "python -m benchmarks.device" in row["skipped"]
+
+
+def test_the_projects_device_bench_runs_the_emulated_falcon():
+    """``python -m benchmarks.device`` (from the checkout): the Falcon row from umockdev's
+    emulated Falcon, with the SIGTERM run only its motor log can time."""
+    from support.emulation import emulation_unavailable_reason
+
+    reason = emulation_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"umockdev emulation unavailable: {reason}")
+    out = subprocess.run([sys.executable, "-m", "benchmarks.device", "--devices", "falcon",
+                          "--seconds", "1", "--repeats", "1", "--no-write", "--json"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    (row,) = json.loads(out.stdout)
+    assert row["device"] == "falcon" and row["servo_rate_hz"] > 0
+    assert 0.0 < row["watchdog_ms"] <= 50.0 and row["stop_ms"] is not None
 
 
 def test_serve_with_a_haptic_device(tmp_path):

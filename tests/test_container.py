@@ -23,7 +23,8 @@ import httpx
 import numpy as np
 import pytest
 
-from burrforce.server.bench.podman import (
+from burrforce.server.bone import LoadOptions, load_bone
+from support.podman import (
     HTTP_PORT,
     IMAGE_USER,
     UDP_PORT,
@@ -32,7 +33,6 @@ from burrforce.server.bench.podman import (
     compose_ulimits,
     free_port,
 )
-from burrforce.server.bone import LoadOptions, load_bone
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"

@@ -239,7 +239,7 @@ DISCOVER = ("import json; from burrforce.server.devices.discovery import list_de
     ("board", "usb", {}),
 ])
 def test_discovery_sees_an_emulated_device(kind, backend, options):
-    from burrforce.server.devices.emulation.launcher import (
+    from support.emulation.launcher import (
         EmulatedUsb,
         emulation_unavailable_reason,
     )
@@ -247,8 +247,8 @@ def test_discovery_sees_an_emulated_device(kind, backend, options):
     reason = emulation_unavailable_reason()
     if reason:
         pytest.skip(f"umockdev emulation unavailable: {reason}")
-    if importlib.util.find_spec(f"burrforce.server.devices.emulation.{kind}") is None:
-        pytest.skip(f"no emulated {kind} (burrforce.server.devices.emulation.{kind})")
+    if importlib.util.find_spec(f"support.emulation.{kind}") is None:
+        pytest.skip(f"no emulated {kind} (support.emulation.{kind})")
     with EmulatedUsb(kind, bus=1, devnum=4, **options) as emu:
         run = subprocess.run([sys.executable, "-c", DISCOVER], env=emu.client_env(),
                              capture_output=True, text=True, timeout=120)
@@ -262,7 +262,7 @@ def test_discovery_sees_an_emulated_device(kind, backend, options):
 
 
 def test_scan_sees_the_emulated_loopback_device():
-    from burrforce.server.devices.emulation.launcher import (
+    from support.emulation.launcher import (
         EmulatedUsb,
         emulation_unavailable_reason,
     )

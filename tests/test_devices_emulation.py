@@ -1,4 +1,4 @@
-"""USB device emulation (server/devices/emulation): the device models on their own, then real
+"""USB device emulation (tests/support/emulation): the device models on their own, then real
 pyusb + libusb in a preloaded subprocess against emulated devices (umockdev).
 
 The integration tests skip, with the reason, when PyGObject/UMockdev or
@@ -22,17 +22,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from burrforce.server.devices.actuators import board_protocol as bp
-from burrforce.server.devices.emulation.board import EmulatedBoard
-from burrforce.server.devices.emulation.falcon import EmulatedFalcon
-from burrforce.server.devices.emulation.ftdi import MODEM_STATUS, divisor_to_baud
-from burrforce.server.devices.emulation.function import EmulatedFunction, Endpoint
-from burrforce.server.devices.emulation.launcher import (
-    EmulatedUsb,
-    EmulatorCommandError,
-    emulation_unavailable_reason,
-)
-from burrforce.server.devices.emulation.loopback import LoopbackFunction
-from burrforce.server.devices.emulation.mechanism import FalconMechanism
 from burrforce.server.devices.falcon import protocol as fp
 from burrforce.server.devices.falcon.kinematics import (
     WORKSPACE_RADIUS_M,
@@ -43,6 +32,17 @@ from burrforce.server.devices.falcon.kinematics import (
     motor_torques,
     torques_to_commands,
 )
+from support.emulation.board import EmulatedBoard
+from support.emulation.falcon import EmulatedFalcon
+from support.emulation.ftdi import MODEM_STATUS, divisor_to_baud
+from support.emulation.function import EmulatedFunction, Endpoint
+from support.emulation.launcher import (
+    EmulatedUsb,
+    EmulatorCommandError,
+    emulation_unavailable_reason,
+)
+from support.emulation.loopback import LoopbackFunction
+from support.emulation.mechanism import FalconMechanism
 
 
 class FakeClock:
@@ -657,7 +657,7 @@ def test_launcher_reports_bad_kinds_options_and_commands():
 
 
 def test_emulator_help_runs_without_umockdev():
-    proc = subprocess.run([sys.executable, "-m", "burrforce.server.devices.emulation", "--help"],
+    proc = subprocess.run([sys.executable, "-m", "support.emulation", "--help"],
                           capture_output=True, text=True, timeout=60,
                           env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert proc.returncode == 0 and "falcon" in proc.stdout

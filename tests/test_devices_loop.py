@@ -274,7 +274,7 @@ def test_specs_parse_and_bad_ones_are_refused(tmp_path):
 @pytest.fixture
 def emulated_usb():
     """umockdev's USB emulation (``EmulatedUsb``), or a skip that says why it cannot run."""
-    from burrforce.server.devices.emulation.launcher import (
+    from support.emulation.launcher import (
         EmulatedUsb,
         emulation_unavailable_reason,
     )

@@ -1,5 +1,5 @@
 """FalconDevice, unchanged, through real pyusb + libusb against the umockdev-emulated Falcon
-(``devices.emulation``): firmware upload, homing, force rendering, clamping, velocity,
+(``support.emulation``): firmware upload, homing, force rendering, clamping, velocity,
 zeroing on close, unplugging.
 
 The driver runs in a child process started under the emulator's preload (LD_PRELOAD cannot
@@ -20,10 +20,10 @@ import time
 import numpy as np
 import pytest
 
-from burrforce.server.devices.emulation import EmulatedUsb, emulation_unavailable_reason
 from burrforce.server.devices.falcon import protocol as P
 from burrforce.server.devices.falcon.kinematics import commands_to_torques, end_effector_force
 from burrforce.server.haptics.profiles import PROFILES
+from support.emulation import EmulatedUsb, emulation_unavailable_reason
 
 pytestmark = pytest.mark.skipif(emulation_unavailable_reason() is not None,
                                 reason=f"USB emulation unavailable: "

@@ -1,4 +1,4 @@
-"""``python -m burrforce.server.bench.tick_profile`` in its wall-time mode (the callgrind mode is
+"""``python -m benchmarks.tick_profile`` in its wall-time mode (the callgrind mode is
 the same ticks under valgrind): every burr ploughs the groove and reports a tick time."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from burrforce.server.bench import tick_profile
+from benchmarks import tick_profile
 
 
 @pytest.mark.parametrize("burr", list(tick_profile.BURR_CHOICES))

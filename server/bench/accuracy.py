@@ -16,6 +16,7 @@ from ..cli.args import float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case
+from . import runner
 from .edges import edge_rows, render_edges
 from .groove import groove_block, run_groove
 from .timing import machine_line
@@ -294,12 +295,12 @@ def _element_counts(text: str) -> tuple[int, ...]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "accuracy", help="voxel engine force error, ripple and tick time",
+    p = runner.add_bench(
+        sub, "accuracy", main, help="voxel engine force error, ripple and tick time",
         description="Steady grooves for the thesis's nine cases at several voxel sizes and "
                     "burr element counts: error against the analytic force, ripple, carve + "
                     "force time per tick. Writes OUT/accuracy.md, accuracy.json, "
-                    "accuracy.png.")
+                    "accuracy.png.", json_help=runner.JSON_ROWS)
     p.add_argument("--voxel-mm", type=_voxel_size,
                    help="only this voxel size (mm). Default 0.05, 0.1, 0.2, 0.4")
     p.add_argument("--elements", type=_element_counts,
@@ -309,17 +310,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="groove length measured per case after 0.5 mm warm-up. Default 3")
     p.add_argument("--no-oblique", action="store_true",
                    help="skip the runs on an oblique grid")
-    p.add_argument("--json", action="store_true",
-                   help="print the rows as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG")
     p.add_argument("--no-edges", action="store_true",
                    help="skip the edge rows (plunges, retracing a groove, burr shapes)")
     p.add_argument("--baseline", type=Path,
                    help="accuracy.json to compare against (drawn as \"before\"). Default: the "
                         "baseline kept in OUT/accuracy.json, or that file's rows if it has none")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -347,7 +343,7 @@ def main(args: argparse.Namespace) -> int:
               f"{100 * row.ripple_rel:.2f} %, p50 {row.tick_p50_us:.0f} µs, "
               f"p99 {row.tick_p99_us:.0f} µs", file=sys.stderr)
 
-    out: Path = args.out
+    out = runner.out_dir(args)
     explicit = getattr(args, "baseline", None) is not None
     baseline, baseline_source = load_baseline(
         args.baseline if explicit else out / "accuracy.json", explicit)
@@ -372,10 +368,6 @@ def main(args: argparse.Namespace) -> int:
     }, indent=1))
     if not args.no_plot:
         plot(rows, out / "accuracy.png", baseline)
-    if args.json:
-        print(json.dumps([asdict(r) for r in rows], indent=1))
-    else:
-        print((out / "accuracy.md").read_text())
-    print(f"results written to {out}/accuracy.md, accuracy.json"
-          + ("" if args.no_plot else ", accuracy.png"), file=sys.stderr)
-    return 0
+    return runner.report(args, out / "accuracy.md", out / "accuracy.json",
+                         *(() if args.no_plot else (out / "accuracy.png",)),
+                         rows=[asdict(r) for r in rows], indent=1)

@@ -1,5 +1,6 @@
 """``burrforce bench device``: the device loop's servo rate and jitter, pose-to-force latency
-and watchdog reaction, with the simulated device and the USB-emulated Falcon.
+and watchdog reaction, with the simulated device and a Falcon: the one plugged in here, or
+(the project's own run, ``python -m benchmarks.device``) the USB-emulated one.
 
 Each device runs for real, in wall time: a server (real hot loop, real UDP on 127.0.0.1)
 with the workpiece phantom and a session coupled for the device's profile, and the device loop
@@ -21,9 +22,11 @@ loop's own statistics (``devices.stats``):
   device is pushed → the last non-zero motor command the emulated Falcon received, from the
   emulator's own log (and the last command must be zero).
 
-The emulated Falcon is the real driver (pyusb → libusb → usbfs) against umockdev
-(``devices.emulation``): its timing includes the emulation's cost per transfer and says
-nothing about real hardware; it is skipped, with the reason, where umockdev cannot run.
+A real Falcon is run with the user's hand on its grip (cut into the bone while it streams);
+without one plugged in and accessible, its row says why it was skipped. The emulated Falcon
+(``FalconSource``: the project's harness, ``tests/support/emulation``, not installed) is the
+real driver (pyusb → libusb → usbfs) against umockdev: its timing includes the emulation's
+cost per transfer and says nothing about real hardware.
 """
 
 from __future__ import annotations
@@ -36,10 +39,13 @@ import signal
 import sys
 import tempfile
 import time
+from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
+from . import runner
 from .timing import machine_line
 
 DEVICES = ("sim", "falcon")
@@ -70,6 +76,30 @@ def falcon_groove_path(seconds: float) -> list[list[float]]:
             path.append([t0 + t, *p])
         t0 += period
     return path
+
+
+class FalconSource(Protocol):
+    """Where the ``falcon`` row's device comes from instead of the USB bus: an emulator."""
+
+    def unavailable(self) -> str | None:
+        """None when the source can run here, else why not (the row's ``skipped``)."""
+
+    def start(self) -> AbstractContextManager[Any]:
+        """A started emulator for one run: its ``client_env()`` is the device process's
+        environment, its ``control(cmd, **args)`` scripts the hand (``set_hand``) and reads
+        the motor log (``log``)."""
+
+
+def real_falcon_missing() -> str | None:
+    """None when a Falcon is plugged in and this user may open it, else why not."""
+    from ..devices.discovery import list_devices
+
+    entry = next(e for e in list_devices(audio=False) if e["name"] == "falcon")
+    if any(u["accessible"] for u in entry["units"]):
+        return None
+    problems = [u["problem"] for u in entry["units"] if u["problem"]]
+    return ("; ".join(problems) if problems else "no Falcon connected") + \
+        " (the project's emulated run: python -m benchmarks.device)"
 
 
 def _run_once(spec: str, seconds: float, env: dict | None, emulator=None,
@@ -136,19 +166,25 @@ def _run_once(spec: str, seconds: float, env: dict | None, emulator=None,
             stack.stop()
 
 
-def bench_device(name: str, seconds: float, repeats: int) -> dict:
-    """The row for one device (``sim`` or ``falcon``)."""
+def bench_device(name: str, seconds: float, repeats: int,
+                 falcon: FalconSource | None = None) -> dict:
+    """The row for one device (``sim`` or ``falcon``: the real one, or ``falcon``'s)."""
     runs = []
     if name == "sim":
         runs = [_run_once(SIM_SPEC, seconds, None) for _ in range(repeats)]
+    elif falcon is None:
+        reason = real_falcon_missing()
+        if reason is not None:
+            return {"device": name, "skipped": reason}
+        runner.say(f"falcon: hold the grip and cut into the bone for {seconds:g} s, "
+                   f"{repeats} times")
+        runs = [_run_once("falcon", seconds, None) for _ in range(repeats)]
     else:
-        from ..devices.emulation.launcher import EmulatedUsb, emulation_unavailable_reason
-
-        reason = emulation_unavailable_reason()
+        reason = falcon.unavailable()
         if reason is not None:
             return {"device": name, "skipped": reason}
         for finish in ("kill",) * repeats + ("sigterm",):
-            with EmulatedUsb("falcon", firmware_loaded=True, homed=True) as emu:
+            with falcon.start() as emu:
                 runs.append(_run_once("falcon", seconds, emu.client_env(), emu, finish))
     first = runs[0]["status"]
     watchdog = [r["watchdog_ms"] for r in runs if r["watchdog_ms"] is not None]
@@ -204,28 +240,26 @@ def cycle_cpu(callgrind: bool) -> dict:
     return row
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "device", help="device loop: servo rate, jitter, pose-to-force latency, watchdog",
-        description="Run the device loop in wall time with the simulated device and the "
-                    "USB-emulated Falcon against a real server; measure its servo rate and "
-                    "period jitter, the pose-to-reply and pose-to-force latency, and the "
-                    "watchdog's reaction to a killed hot loop. Writes OUT/device.md and "
-                    "device.json.")
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = runner.add_bench(
+        sub, "device", main,
+        help="device loop: servo rate, jitter, pose-to-force latency, watchdog",
+        description="Run the device loop in wall time with the simulated device and a "
+                    "Falcon plugged in here (skipped without one) against a real server; "
+                    "measure its servo rate and period jitter, the pose-to-reply and "
+                    "pose-to-force latency, and the watchdog's reaction to a killed hot "
+                    "loop. Writes OUT/device.md and device.json.", json_help=runner.JSON_ROWS)
     p.add_argument("--devices", nargs="+", choices=DEVICES, default=list(DEVICES))
     p.add_argument("--seconds", type=float, default=5.0,
                    help="how long each device streams before the watchdog test. Default 5")
     p.add_argument("--repeats", type=int, default=3,
                    help="watchdog kills per device (fresh server each). Default 3")
-    p.add_argument("--json", action="store_true",
-                   help="print the rows as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
     p.add_argument("--no-write", action="store_true", help="print only, write no files")
     p.add_argument("--callgrind", action="store_true",
                    help="also count the loop's instructions per cycle with valgrind's "
                         "callgrind (repeatable on a busy machine; about a minute)")
-    p.set_defaults(func=main)
+    p.set_defaults(falcon=None)
+    return p
 
 
 def _fmt(value, digits: int = 0) -> str:
@@ -277,9 +311,8 @@ def write_results(rows: list[dict], out: Path) -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
+    """``args.falcon``: a :class:`FalconSource` (the project's emulated run), else None."""
+    say = runner.say
     if not 0.5 <= args.seconds <= 600.0:
         raise ValueError("--seconds must be within [0.5, 600]")
     if not 1 <= args.repeats <= 20:
@@ -287,15 +320,15 @@ def main(args: argparse.Namespace) -> int:
     rows = []
     for name in args.devices:
         say(f"{name}: {args.repeats} × ({args.seconds:g} s streaming + a watchdog kill)...")
-        row = bench_device(name, args.seconds, args.repeats)
+        row = bench_device(name, args.seconds, args.repeats, args.falcon)
         say(f"{name}: {row}")
         rows.append(row)
     cpu = cycle_cpu(args.callgrind)
     say(f"loop CPU per cycle: {cpu}")
     for row in rows:
         row.update(cpu)
-    if not args.no_write:
-        say(f"results written to {write_results(rows, args.out)}")
-    if args.json:
-        print(json.dumps(rows, indent=2))
-    return 0
+    if args.no_write:
+        if args.json:
+            print(json.dumps(rows, indent=2))
+        return 0
+    return runner.report(args, write_results(rows, runner.out_dir(args)), rows=rows)

@@ -32,7 +32,10 @@ in chunks (this machine is shared: slow spells then fall on every run alike):
   slice; the waking-ahead guard (``hotloop.wake``) notices and stops polling. Their own loops
   keep the guard's back-off out of the other modes;
 - ``page closed`` / ``page open``: the browser view itself, open and closed on a cutting
-  session of the real stack (``bench.latency_page``; ``--no-page`` skips it).
+  session of the real stack: the project's own measurement (headless Chromium driven by
+  playwright), run from a checkout as ``python -m benchmarks.latency``
+  (``benchmarks/latency_page.py``; ``--no-page`` skips it there). This command leaves it out
+  and says so in the results.
 
 Each paced at 1 kHz (the haptic rate; sends on an absolute schedule) and back-to-back. A
 round trip runs from the client stamping its packet (before encoding, as a real client) to
@@ -42,7 +45,6 @@ the reply's arrival (before decoding).
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
 import json
 import math
@@ -52,6 +54,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -61,7 +64,7 @@ from ...proto.codec import decode_server_message, encode_pose
 from ...proto.messages import FLAG_RESET_VELOCITY, NEW_STREAM, STATUS_CUTTING, Notice, Pose
 from ...proto.tag import Tagger, new_key
 from ..cli.args import float_in, int_in
-from .timing import machine_line
+from . import runner
 
 MODES = ("echo", "overhead", "cutting", "blocking", "realtime", "watched", "minimal", "hogged",
          "hogged blocking", "hogged realtime")
@@ -115,8 +118,8 @@ class RunStats:
     cutting_fraction: float | None = None
 
 
-def _stats(mode: str, pacing: str, rtt_us: np.ndarray, lost: int,
-           cutting_fraction: float | None = None) -> RunStats:
+def run_stats(mode: str, pacing: str, rtt_us: np.ndarray, lost: int,
+              cutting_fraction: float | None = None) -> RunStats:
     if len(rtt_us) == 0:
         nan = float("nan")
         return RunStats(mode, pacing, 0, lost, nan, nan, nan, nan, cutting_fraction)
@@ -125,7 +128,7 @@ def _stats(mode: str, pacing: str, rtt_us: np.ndarray, lost: int,
                     float(rtt_us.max()), cutting_fraction)
 
 
-class _Cut:
+class GrooveCut:
     """Poses along the raster, advanced by the client's own clock so the feed speed is 3 mm/s
     whatever the pacing. Past the last row it starts again 0.5 mm deeper."""
 
@@ -150,11 +153,11 @@ class _Cut:
         return (x, y, z), flags
 
 
-class _Client:
+class StreamClient:
     """A lean client: stamp, encode, send, block on the reply, stamp its arrival."""
 
     def __init__(self, address: tuple[str, int], session: int | None, key: bytes | None,
-                 cut: _Cut | None = None) -> None:
+                 cut: GrooveCut | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.connect(address)
         self.sock.settimeout(REPLY_TIMEOUT_S)
@@ -238,7 +241,7 @@ class _Client:
         return decode_server_message(data).seq == self.seq - 1
 
 
-def _pin(*server_pids: int) -> str:
+def pin_cpus(*server_pids: int) -> str:
     """Servers on the last CPU, this client on the first: the same placement for the echo
     and the hot loop. Left to the scheduler, a round trip between two processes costs a
     context switch when both land on one CPU and a cross-CPU wake-up (~3× slower in a VM)
@@ -307,7 +310,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
            for mode, (spec, wake, realtime) in own_loops.items()}
     watcher = None
     hog = None
-    cpus = os.sched_getaffinity(0)  # _pin pins this process; the caller gets its CPUs back
+    cpus = os.sched_getaffinity(0)  # pin_cpus pins this process; the caller gets its CPUs back
     try:
         echo_port = int(echo.stdout.readline())  # type: ignore[union-attr]
         address = hot.start()
@@ -315,7 +318,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         own_address = {mode: loop.start() for mode, loop in own.items()}
         hog = subprocess.Popen([sys.executable, "-c", HOG, str(os.getpid())])
         hog.send_signal(signal.SIGSTOP)
-        placement = _pin(hot.pid, blocking.pid, echo.pid, hog.pid,
+        placement = pin_cpus(hot.pid, blocking.pid, echo.pid, hog.pid,
                          *(loop.pid for loop in own.values()))
         watcher = subprocess.Popen([sys.executable, "-m", "burrforce.server.bench.telemetry_watch",
                                     str(shared), str(WATCHED_SESSION), str(WATCH_HZ)],
@@ -323,13 +326,13 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
         watcher.stdout.readline()  # type: ignore[union-attr]
         watcher.send_signal(signal.SIGSTOP)
         clients = {
-            "echo": _Client(("127.0.0.1", echo_port), None, None),
-            "overhead": _Client(address, OVERHEAD_SESSION, key),
-            "cutting": _Client(address, CUTTING_SESSION, key, _Cut()),
-            "blocking": _Client(blocking_address, BLOCKING_SESSION, key, _Cut()),
-            "watched": _Client(address, WATCHED_SESSION, key, _Cut()),
-            "minimal": _Client(address, MINIMAL_SESSION, key, _Cut()),
-        } | {mode: _Client(own_address[mode], spec.session_id, key, _Cut())
+            "echo": StreamClient(("127.0.0.1", echo_port), None, None),
+            "overhead": StreamClient(address, OVERHEAD_SESSION, key),
+            "cutting": StreamClient(address, CUTTING_SESSION, key, GrooveCut()),
+            "blocking": StreamClient(blocking_address, BLOCKING_SESSION, key, GrooveCut()),
+            "watched": StreamClient(address, WATCHED_SESSION, key, GrooveCut()),
+            "minimal": StreamClient(address, MINIMAL_SESSION, key, GrooveCut()),
+        } | {mode: StreamClient(own_address[mode], spec.session_id, key, GrooveCut())
              for mode, (spec, _, _) in own_loops.items()}
         realtime_granted = {mode: is_realtime(own[mode].pid)
                             for mode in ("realtime", "hogged realtime")}
@@ -363,7 +366,7 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
                     mask = np.array(c.cutting, dtype=bool)
                     fraction = float(mask.mean()) if len(mask) else 0.0
                     rtt = rtt[mask]  # the expensive ticks: the burr removing bone
-                results.append(_stats(mode, pacing, rtt, c.lost, fraction))
+                results.append(run_stats(mode, pacing, rtt, c.lost, fraction))
         server = hot.stats()
         server_blocking = blocking.stats()
         server_hogged = own["hogged"].stats()
@@ -447,12 +450,11 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     }
 
 
-def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "latency.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+def write_results(result: dict, out: Path,
+                  page_lines: Sequence[str] = ()) -> tuple[Path, Path]:
+    """OUT/latency.md (ending in ``page_lines``, the live-view section) and latency.json."""
+    result, json_path = runner.save_json(out, "latency", result)
+    stamp = result["date"]
     echo, overhead = result["echo_p50_us"], result["overhead_p50_us"]
     lines = [
         "# Round-trip latency (`burrforce bench latency`)",
@@ -545,22 +547,19 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         "",
         f"Server counters: {json.dumps(result['server_counters'])}",
     ]
-    if "page" in result:
-        from . import latency_page
-
-        lines += latency_page.markdown(result["page"])
+    lines += page_lines
     lines.append("")
     md_path = out / "latency.md"
     md_path.write_text("\n".join(lines))
     return md_path, json_path
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "latency", help="UDP round trips: echo floor, protocol overhead, cutting",
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = runner.add_bench(
+        sub, "latency", main, help="UDP round trips: echo floor, protocol overhead, cutting",
         description="Round-trip latency through the real protocol and hot-loop process, "
                     "against a bare UDP echo, paced at 1 kHz and back-to-back. Writes "
-                    "OUT/latency.md and latency.json.")
+                    "OUT/latency.md and latency.json.", json_help=runner.RESULTS_JSON)
     p.add_argument("--samples", type=int_in(500, 10_000_000, "sample count"), default=10_000,
                    help="round trips per run at 1 kHz. Default 10000 (10 s per run)")
     p.add_argument("--samples-b2b", type=int_in(500, 10_000_000, "sample count"),
@@ -569,39 +568,33 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="workpiece voxel size for the cutting run, mm. Default 0.1")
     p.add_argument("--no-page", action="store_true",
                    help="skip the live-view part (the browser view open and closed on a "
-                        "session of the real stack; needs playwright and /usr/bin/chromium)")
-    p.add_argument("--json", action="store_true",
-                   help="print the results as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
+                        "session of the real stack). Only the project's own run measures "
+                        "it, from a checkout: python -m benchmarks.latency (playwright and "
+                        "/usr/bin/chromium)")
+    return p
+
+
+#: The live-view part's place in the results of a run that leaves it out.
+PAGE_ELSEWHERE = "measured only by the project's own run (python -m benchmarks.latency)"
+
+
+def page_section(page: dict) -> list[str]:
+    """latency.md's live-view section when the part was skipped (``page["skipped"]``)."""
+    return ["", f"Live view (`page closed` / `page open`): skipped — {page['skipped']}."]
+
+
+def finish(args: argparse.Namespace, result: dict, out: Path, page_lines: Sequence[str]) -> int:
+    """Write the results (``result["page"]`` holds the live-view part or why it is missing)
+    and print them: ``--json`` prints the result with its runs last."""
+    if result["page"].get("skipped"):
+        runner.say(f"live view not measured: {result['page']['skipped']}")
+    md, js = write_results(result, out, page_lines)
+    return runner.report(args, md, js, rows={
+        k: v for k, v in result.items() if k != "runs"} | {"runs": result["runs"]})
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    from . import latency_page
-
-    cpus = os.sched_getaffinity(0)  # the page part's CPUs (run() pins, then restores)
-    result = run(args.samples, args.samples_b2b, args.voxel_mm, progress=say)
-    failed = False
-    if args.no_page:
-        result["page"] = {"skipped": "--no-page"}
-    else:
-        try:
-            result["page"] = latency_page.run(args.samples, args.voxel_mm, cpus=cpus,
-                                              progress=say)
-        except Exception as exc:  # the other modes' results are written all the same
-            failed = True
-            result["page"] = {"skipped": f"failed: {type(exc).__name__}: {exc}"}
-    if result["page"].get("skipped"):
-        say(f"live view not measured: {result['page']['skipped']}")
-    md, js = write_results(result, args.out)
-    if args.json:
-        print(json.dumps({k: v for k, v in result.items() if k != "runs"} | {
-            "runs": result["runs"]}, indent=2))
-    else:
-        print(md.read_text())
-    say(f"results written to {md} and {js}")
-    return 1 if failed else 0
+    out = runner.out_dir(args)
+    result = run(args.samples, args.samples_b2b, args.voxel_mm, progress=runner.say)
+    result["page"] = {"skipped": "--no-page" if args.no_page else PAGE_ELSEWHERE}
+    return finish(args, result, out, page_section(result["page"]))

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli.args import int_in
+from . import runner
 from .timing import machine_line
 
 #: The formats timed: keys of bone_files.FORMAT_WRITERS.
@@ -191,21 +192,17 @@ def _formats(text: str) -> tuple[str, ...]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "load", help="load time and memory of a 512³ bone in every format",
+    p = runner.add_bench(
+        sub, "load", main, help="load time and memory of a 512³ bone in every format",
         description="Write a phantom padded to N³ voxels in every format and time loading it "
                     "back (fresh process per load: peak memory). Writes OUT/load.md and "
-                    "load.json.")
+                    "load.json.", json_help="print the rows as JSON on stdout")
     p.add_argument("--size", type=int_in(32, 1024, "size"), default=DEFAULT_SIZE,
                    help=f"voxels per side. Default {DEFAULT_SIZE}")
     p.add_argument("--formats", type=_formats, default=FORMATS,
                    help=f"comma-separated subset of {','.join(FORMATS)}")
     p.add_argument("--repeats", type=int_in(1, 20, "repeats"), default=3,
                    help="loads per format. Default 3")
-    p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -215,17 +212,13 @@ def main(args: argparse.Namespace) -> int:
     if args.repeats != 3:
         flags.append(f"--repeats {args.repeats}")
     command = " ".join(["burrforce bench load", *flags])
-    args.out.mkdir(parents=True, exist_ok=True)
+    out = runner.out_dir(args)
+    out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="burrforce-load-") as tmp:
-        rows = run(args.size, args.formats, args.repeats, Path(tmp),
-                   progress=lambda text: print(text, file=sys.stderr, flush=True))
-    (args.out / "load.md").write_text(render_markdown(rows, command))
-    (args.out / "load.json").write_text(json.dumps(
+        rows = run(args.size, args.formats, args.repeats, Path(tmp), progress=runner.say)
+    (out / "load.md").write_text(render_markdown(rows, command))
+    (out / "load.json").write_text(json.dumps(
         {"command": command, "machine": machine_line(), "date": dt.date.today().isoformat(),
          "rows": [asdict(r) for r in rows]}, indent=2))
-    if args.json:
-        print(json.dumps([asdict(r) for r in rows], indent=2))
-    else:
-        print(render_markdown(rows, command))
-    print(f"results written to {args.out / 'load.md'} and load.json", file=sys.stderr)
-    return 0
+    return runner.report(args, out / "load.md", out / "load.json",
+                         rows=[asdict(r) for r in rows])

@@ -16,7 +16,6 @@ back to back.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import shutil
@@ -30,7 +29,7 @@ import numpy as np
 
 from ...proto.tag import new_key
 from ..cli.args import float_in, int_in
-from .timing import machine_line
+from . import runner
 
 STREAM_SESSION = 1
 LOAD_SESSION = 2
@@ -55,11 +54,11 @@ def stream(host: str, port: int, key: bytes, seconds: float, rate_hz: float,
     import gc
     import signal
 
-    from .latency import _Client, _Cut
+    from .latency import GrooveCut, StreamClient
 
     stopped = []
     signal.signal(signal.SIGTERM, lambda *_: stopped.append(True))
-    client = _Client((host, port), STREAM_SESSION, key, _Cut())
+    client = StreamClient((host, port), STREAM_SESSION, key, GrooveCut())
     client.chunk(1, None)  # untimed: whatever the protocol asks before a stream
     gc.collect()
     gc.freeze()  # the client's own collector must not show up as server latency
@@ -94,7 +93,7 @@ def stream(host: str, port: int, key: bytes, seconds: float, rate_hz: float,
 def run(size: int, loads: int, quiet_s: float, rate_hz: float = 1000.0, progress=None) -> dict:
     from ..bone.shared import SharedBone, publish, run_directory
     from ..hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
-    from .latency import _pin
+    from .latency import pin_cpus
     from .load import build_bone
 
     say = progress or (lambda text: None)
@@ -112,7 +111,7 @@ def run(size: int, loads: int, quiet_s: float, rate_hz: float = 1000.0, progress
         say("starting the hot loop")
         host, port = hot.start()
         try:
-            placement = _pin(hot.pid)
+            placement = pin_cpus(hot.pid)
             Path(workpiece.path).unlink()
             # At most: the client is stopped once the last quiet spell is over.
             budget_s = quiet_s * (loads + 2) + loads * 120.0
@@ -196,11 +195,8 @@ def run(size: int, loads: int, quiet_s: float, rate_hz: float = 1000.0, progress
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "load-while-streaming.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+    result, json_path = runner.save_json(out, "load-while-streaming", result)
+    stamp = result["date"]
 
     def row(name: str, s: dict) -> str:
         if not s["samples"]:
@@ -244,13 +240,13 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "load-while-streaming",
+    p = runner.add_bench(
+        sub, "load-while-streaming", main,
         help="a streaming session's round trips while another session loads a large bone",
         description="Stream one session at 1 kHz (cutting) while a size³ bone is loaded "
                     "into another session, and report the streaming session's round trips "
                     "during and outside the loads. Writes OUT/load-while-streaming.md and "
-                    ".json.")
+                    ".json.", json_help=runner.RESULTS_JSON)
     p.add_argument("--size", type=int_in(64, 1024, "grid size"), default=DEFAULT_SIZE,
                    help=f"the loaded bone is size³ voxels. Default {DEFAULT_SIZE}")
     p.add_argument("--loads", type=int_in(1, 100, "load count"), default=3,
@@ -259,22 +255,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet-s", type=float_in(0.5, 600.0, "quiet spell", "s"), default=3.0,
                    help="seconds of streaming before, between and after the loads. "
                         "Default 3")
-    p.add_argument("--json", action="store_true",
-                   help="print the results as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    result = run(args.size, args.loads, args.quiet_s, progress=say)
-    md, js = write_results(result, args.out)
-    print(json.dumps(result, indent=2) if args.json else md.read_text())
-    say(f"results written to {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    result = run(args.size, args.loads, args.quiet_s, progress=runner.say)
+    md, js = write_results(result, out)
+    return runner.report(args, md, js, rows=result)
 
 
 if __name__ == "__main__":  # the streaming client: host port key-hex seconds rate-hz out.npy

@@ -16,18 +16,15 @@ REPLY that announced a new ``bone_version`` arriving, to the copy holding that v
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from . import runner
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 CHUNK_BRICKS = (1, 2, 4, 8)
 BONES = (("workpiece", 0.1), ("temporal", 0.2))
@@ -195,11 +192,8 @@ def run(progress=print, live_runs: bool = True) -> dict:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "mesh.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "mesh", result)
+    stamp = result["date"]
     lines = [
         "# Mesh chunks (`burrforce bench mesh`)", "",
         f"{stamp}; {result['machine']}. One run.", "",
@@ -238,22 +232,14 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "mesh", help="mesh chunks: sizes, meshing time, WebSocket vs REST latency",
+    p = runner.add_bench(
+        sub, "mesh", main, help="mesh chunks: sizes, meshing time, WebSocket vs REST latency",
         description="Chunk meshes of the phantoms per chunk size, updates during a groove, "
                     "and how fast an engine's copy follows over the WebSocket and over REST "
                     "polling. Writes OUT/mesh.md and mesh.json.")
     p.add_argument("--no-live", action="store_true", help="skip the live server runs")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    md, js = write_results(run(say, not args.no_live), args.out)
-    print(md.read_text())
-    say(f"results written to {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    return runner.report(args, *write_results(run(runner.say, not args.no_live), out))

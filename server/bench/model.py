@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 from ..model import CuttingModel, CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA, DEFAULT_REFINE
 from ..model.reference import reference_case
+from . import runner
 from .timing import machine_line, time_interleaved
 
 TARGET_ERROR = 0.005
@@ -170,18 +170,16 @@ def plot(rows: list[ModelBenchRow], path: Path) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("model", help="model time per evaluation and error vs element count",
-                       description="Time per evaluation (median, p99) and error against the "
-                                   "converged reference for a range of burr resolutions; "
-                                   "writes OUT/model.md, OUT/model.json and OUT/model.png.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
+    p = runner.add_bench(
+        sub, "model", main, help="model time per evaluation and error vs element count",
+        description="Time per evaluation (median, p99) and error against the converged "
+                    "reference for a range of burr resolutions; writes OUT/model.md, "
+                    "OUT/model.json and OUT/model.png.")
     p.add_argument("--repeats", type=int, default=2000,
                    help="timed calls per case and resolution. Default 2000")
     p.add_argument("--quick", action="store_true",
                    help="fewer repeats and resolutions (a smoke run, not for the record)")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -191,14 +189,12 @@ def main(args: argparse.Namespace) -> int:
     n_thetas = (12, DEFAULT_N_THETA) if args.quick else N_THETAS
     command = "burrforce bench model" + (" --quick" if args.quick else "")
     rows, wrapper_us = run(repeats, n_thetas)
-    out: Path = args.out
+    out = runner.out_dir(args)
     out.mkdir(parents=True, exist_ok=True)
     (out / "model.md").write_text(render_markdown(rows, wrapper_us, command))
     (out / "model.json").write_text(json.dumps(
         {"rows": [asdict(r) for r in rows], "evaluate_full_median_us": wrapper_us}, indent=2))
     if not args.no_plot:
         plot(rows, out / "model.png")
-    print((out / "model.md").read_text())
-    print(f"results written to {out}/model.md, model.json"
-          + ("" if args.no_plot else ", model.png"), file=sys.stderr)
-    return 0
+    return runner.report(args, out / "model.md", out / "model.json",
+                         *(() if args.no_plot else (out / "model.png",)))

@@ -43,14 +43,12 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import datetime as dt
 import gc
 import json
 import os
 import selectors
 import socket
 import struct
-import sys
 import tempfile
 import time
 import urllib.error
@@ -65,11 +63,11 @@ import numpy as np
 from ...client.udp import SessionRules
 from ...proto.messages import HELLO_STREAM, NEW_STREAM, SEQ_MODULUS, STATUS_CUTTING, Notice
 from ..cli.args import float_in, int_at_least
-from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, HELLO_TRIES, RPM, _Cut
+from . import runner
+from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, HELLO_TRIES, RPM, GrooveCut
 from .procstat import cpu_s
 from .serve_process import spawn_serve
 from .soak import Rest
-from .timing import machine_line
 
 DEFAULT_SESSIONS = (1, 2, 4, 8, 16)
 VOXEL_MM = 0.1
@@ -97,7 +95,7 @@ class _Stream:
     worker: int | None
     sock: socket.socket
     rules: SessionRules
-    cut: _Cut = field(default_factory=_Cut)
+    cut: GrooveCut = field(default_factory=GrooveCut)
     seq0: int = 0
     send_ns: np.ndarray | None = None  # (ticks,) monotonic ns, 0: not sent
     datagrams: list[bytes] = field(default_factory=list)  # one POSE per tick, encoded
@@ -493,11 +491,8 @@ def _f(value: float | None, fmt: str = ".0f") -> str:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result = {**result, "date": stamp, "machine": machine_line(), "target": TARGET}
-    js = out / "sessions.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "sessions", result | {"target": TARGET}, utc=True)
+    stamp = result["date"]
     workers = result["workers_option"]
     lines = [
         "# Concurrent cutting sessions at 1 kHz (`burrforce bench sessions`)", "",
@@ -584,13 +579,14 @@ def _counts(text: str) -> list[int]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "sessions", help="many concurrent cutting sessions at 1 kHz from one load generator",
+    p = runner.add_bench(
+        sub, "sessions", main,
+        help="many concurrent cutting sessions at 1 kHz from one load generator",
         description="For each session count: a fresh `burrforce serve`, that many sessions "
                     "each cutting its own 0.1 mm workpiece at 1 kHz, driven by one "
                     "single-threaded load generator. Reports round trips, lost and late "
                     "replies, server CPU per session and the generator's own cost. Writes "
-                    "OUT/sessions.md and sessions.json.")
+                    "OUT/sessions.md and sessions.json.", json_help=runner.JSON_ROWS)
     p.add_argument("--sessions", type=_counts, default=list(DEFAULT_SESSIONS),
                    help="session counts, comma-separated. Default 1,2,4,8,16")
     p.add_argument("--workers", type=int_at_least(1, "--workers"), default=None,
@@ -617,20 +613,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         f"±{RATE_SPREAD_PPM:g} ppm")
     p.add_argument("--phase-seed", type=int, default=1, metavar="SEED",
                    help="the independent clocks' random seed. Default 1")
-    p.add_argument("--json", action="store_true",
-                   help="print the rows as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, say, args.read,
-                 args.wake_ahead_us, args.phases, args.phase_seed, args.realtime)
-    md, js = write_results(result, args.out)
-    print(json.dumps(result["rows"], indent=2) if args.json else md.read_text())
-    say(f"results written to {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    result = run(args.sessions, args.workers, args.warmup_s, args.seconds, runner.say,
+                 args.read, args.wake_ahead_us, args.phases, args.phase_seed, args.realtime)
+    md, js = write_results(result, out)
+    return runner.report(args, md, js, rows=result["rows"])

@@ -22,14 +22,12 @@ p99 ≤ 2 × quiet p99.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import multiprocessing
 import os
 import signal
 import socket
-import sys
 import tempfile
 import threading
 import time
@@ -39,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
+from . import runner
 from .flood import flood
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 PHASES = (("quiet", 0.05, 0.30), ("flood", 0.30, 0.40), ("after_flood", 0.40, 0.60),
           ("after_kill", 0.60, 1.00))
@@ -294,11 +292,8 @@ def summarize(clients, duration_s: float, killed_at: float, rss, churn_stats: di
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "soak.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "soak", result, utc=True)
+    stamp = result["date"]
     r = result
 
     def ok(flag: bool) -> str:
@@ -344,8 +339,9 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "soak", help="sessions at 1 kHz with REST churn, a junk flood and a hot-loop kill",
+    p = runner.add_bench(
+        sub, "soak", main,
+        help="sessions at 1 kHz with REST churn, a junk flood and a hot-loop kill",
         description="Run `burrforce serve` for a while under everything at once: streaming "
                     "sessions, REST churn, a 100 000/s junk flood, a SIGKILL of the hot loop. "
                     "Reports lost replies, round trips per phase, recovery time and memory "
@@ -359,16 +355,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "a 2-core machine)")
     p.add_argument("--churn-s", type=float, default=0.5,
                    help="seconds between REST operations. Default 0.5")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    md, js = write_results(run(args.duration_s, args.sessions, args.churn_s, args.voxel_mm,
-                               say), args.out)
-    say(f"wrote {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    return runner.report(args, *write_results(
+        run(args.duration_s, args.sessions, args.churn_s, args.voxel_mm, runner.say), out))

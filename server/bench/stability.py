@@ -81,12 +81,12 @@ import argparse
 import datetime as dt
 import gc
 import json
-import sys
 import time
 from pathlib import Path
 
 from ...proto.tag import new_key
 from ..haptics.profiles import PROFILES
+from . import runner
 from .stability_sim import RENDERS, Link, Scenario, simulate
 from .timing import machine_line
 
@@ -340,13 +340,15 @@ def plot_map(rows: list[dict], path: Path) -> None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "stability", help="closed-loop stability of the haptic output (simulated device)",
+    p = runner.add_bench(
+        sub, "stability", main,
+        help="closed-loop stability of the haptic output (simulated device)",
         description="A 1 kHz closed loop through the real protocol and hot loop, with a "
                     "simulated device, hand and network in simulated time: sweeps of rpm, "
                     "feed, Us, K, packet interval, network impairments and events, per "
                     "device profile and output mode. The full run writes OUT/stability.md, "
-                    "stability.json and stability.png; --quick only prints.")
+                    "stability.json and stability.png; --quick only prints.",
+        json_help=runner.JSON_ROWS)
     p.add_argument("--quick", action="store_true",
                    help="a representative subset (all profiles, both modes, 5 cases); "
                         "prints, writes no files")
@@ -360,22 +362,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="output modes. Default both")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help=f"network/jitter seed. Default {DEFAULT_SEED}")
-    p.add_argument("--json", action="store_true",
-                   help="print the rows as JSON on stdout (progress goes to stderr)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
     p.add_argument("--render", choices=RENDERS, default="servo",
                    help="how the device renders coupled replies: servo = the device loop's "
                         "servo-rate re-rendering of the coupling model (devices.render), hold "
                         "= each reply's force held until the next (the behaviour before the "
                         "device loop). Default servo")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
+    say = runner.say
     cases = quick_cases() if args.quick else sweep_cases()
     if args.cases:
         unknown = set(args.cases) - {c.case for c in cases}
@@ -393,7 +388,7 @@ def main(args: argparse.Namespace) -> int:
                     "energy_tol_J": ENERGY_TOL_J,
                     "oscillation_fraction": OSC_FRACTION, "voxel_mm": VOXEL_MM,
                     "profiles": args.profiles}
-        md, js, png = write_results(rows, settings, args.out)
+        md, js, png = write_results(rows, settings, runner.out_dir(args))
         say(f"results written to {md}, {js} and {png}")
     if args.json:
         print(json.dumps(rows, indent=2))

@@ -12,8 +12,6 @@ loaded: a warm run must save nothing.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
 import os
 import shutil
 import statistics
@@ -25,9 +23,9 @@ from pathlib import Path
 import httpx
 
 from ...client.udp import BurrClient
+from . import runner
 from .procstat import cpu_s
 from .serve_process import spawn_serve
-from .timing import machine_line
 
 #: (name, serve arguments).
 CASES: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -140,11 +138,8 @@ def run(runs: int = 5, cold: bool = True, progress=print,
 
 
 def write_results(result: dict, out: Path, note: str = "") -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    js = out / "startup.json"
-    js.write_text(json.dumps(result, indent=2) + "\n")
+    result, js = runner.save_json(out, "startup", result)
+    stamp = result["date"]
     lines = [
         "# Start-up (`burrforce bench startup`)", "",
         f"{stamp}; {result['machine']}; {result['python']}.", "",
@@ -180,8 +175,9 @@ def write_results(result: dict, out: Path, note: str = "") -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "startup", help="time to ready of serve: first start (empty numba cache) and later",
+    p = runner.add_bench(
+        sub, "startup", main,
+        help="time to ready of serve: first start (empty numba cache) and later",
         description="Start `burrforce serve` and `serve --demo` with an empty numba cache, "
                     "then RUNS more times with the cache it filled, and time each until it "
                     "is ready (banner, /v1/health, a UDP pose answered). Writes "
@@ -192,20 +188,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="time warm starts only, on this numba cache as it is (e.g. filled by "
                         "`burrforce compile`) instead of a new empty one")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
     p.add_argument("--note", default="", help="a paragraph appended to startup.md")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
     if args.runs < 1:
         raise ValueError("--runs must be at least 1")
-    md, js = write_results(run(args.runs, not args.no_cold, say, args.cache_dir), args.out,
-                           args.note)
-    print(md.read_text())
-    say(f"results written to {md} and {js}")
-    return 0
+    out = runner.out_dir(args)
+    return runner.report(args, *write_results(
+        run(args.runs, not args.no_cold, runner.say, args.cache_dir), out, args.note))

@@ -155,10 +155,13 @@ def _add_compile(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmarks that write results files")
+    p = sub.add_parser("bench", help="benchmarks of this machine that write results files",
+                       description="Benchmarks a user runs on their own machine and "
+                                   "hardware. Each writes its results where --out says, by "
+                                   "default into a new folder "
+                                   "./burrforce-bench-NAME-YYYYmmdd-HHMMSS.")
     bench_sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
     from ..bench import accuracy as bench_accuracy
-    from ..bench import container as bench_container
     from ..bench import device as bench_device
     from ..bench import flood as bench_flood
     from ..bench import latency as bench_latency
@@ -183,7 +186,6 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     bench_soak.add_parser(bench_sub)
     bench_sessions.add_parser(bench_sub)
     bench_startup.add_parser(bench_sub)
-    bench_container.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -106,12 +106,10 @@ def _model() -> None:
 
 
 def _device_loop() -> None:
-    from ..devices.emulation.mechanism import warm_up as warm_mechanism
     from ..devices.falcon.device import _commands_for_force, _sense
     from ..devices.render import CouplingRenderer
     from ..haptics.profiles import PROFILES
 
-    warm_mechanism()
     CouplingRenderer(PROFILES["generic"]).warm_up()
     grip_m = np.array([0.0, 0.0, 0.11])  # near the Falcon's workspace centre
     _sense(np.zeros(3), grip_m.copy())

@@ -7,6 +7,8 @@
 - ``loop``, ``process``, ``stats``: the device loop, its process and its statistics.
 - ``actuators``: vibration cues synthesized from the replies' parameters.
 - ``discovery``, ``udev``: what is plugged in, and the rules Linux needs to open it.
-- ``emulation``: USB devices emulated with umockdev, for tests and benchmarks.
 - ``selftest``: ``burrforce device test``.
+
+USB devices emulated with umockdev, for the tests and the project's benchmarks, are the
+checkout's harness (``tests/support/emulation``), not part of this package.
 """

@@ -18,6 +18,7 @@ import selectors
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from .control import ControlClient, EmulatorCommandError
@@ -30,6 +31,11 @@ __all__ = [
     "EmulatorCommandError",
     "emulation_unavailable_reason",
 ]
+
+
+#: The folder that holds the ``support`` package (tests/): the emulator process imports it from
+#: there, as the tests do (it is not part of the installed burrforce).
+SUPPORT_ROOT = Path(__file__).resolve().parents[2]
 
 
 def emulation_unavailable_reason() -> str | None:
@@ -61,7 +67,7 @@ class EmulatedUsb:
             raise ValueError(f"unknown emulated device {kind!r}; one of: {', '.join(KINDS)}")
         self.kind = kind
         self.options = options
-        self.argv = [python or sys.executable, "-m", "burrforce.server.devices.emulation", kind,
+        self.argv = [python or sys.executable, "-m", "support.emulation", kind,
                      "--options", json.dumps(options), "--bus", str(bus), "--devnum",
                      str(devnum), "--reap-hold-ms", str(reap_hold_ms), "--exit-on-stdin-eof"]
         self.startup_timeout_s = startup_timeout_s
@@ -75,8 +81,19 @@ class EmulatedUsb:
         reason = emulation_unavailable_reason()
         if reason:
             raise EmulationUnavailable(reason)
+        if self.kind == "falcon":
+            # Compiled here first, into the cache the emulator process shares (NUMBA_CACHE_DIR
+            # is inherited): it then loads the mechanism's kernels instead of compiling them
+            # within its start-up timeout. (`burrforce compile` no longer does: the emulator
+            # is not part of the installed package.)
+            from .mechanism import warm_up
+
+            warm_up()
+        env = dict(os.environ)
+        path = env.get("PYTHONPATH")
+        env["PYTHONPATH"] = f"{SUPPORT_ROOT}{os.pathsep}{path}" if path else str(SUPPORT_ROOT)
         self._proc = subprocess.Popen(self.argv, stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE)
+                                      stdout=subprocess.PIPE, env=env)
         line = self._read_ready_line()
         try:
             info = json.loads(line)

@@ -31,9 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from ..falcon import protocol as fp
-from ..falcon.kinematics import commands_to_torques, end_effector_force
-from ..sim import HAND_B_N_S_MM, HAND_K_N_MM
+from burrforce.server.devices.falcon import protocol as fp
+from burrforce.server.devices.falcon.kinematics import commands_to_torques, end_effector_force
+from burrforce.server.devices.sim import HAND_B_N_S_MM, HAND_K_N_MM
+
 from .ftdi import EmulatedFtdi, same_baud
 from .mechanism import FalconMechanism, warm_up
 

@@ -11,7 +11,7 @@ chunk starts: its load is not measured) alternate on the same session and groove
 on through the chunks. The hot loop and the client are pinned as ``bench latency`` pins them;
 chromium and the stack's own process (which serves the page) are not, as on a user's machine.
 
-``python -m burrforce.server.bench.latency_page VOXEL_MM DATA_DIR`` is the stack's process: it
+``python -m benchmarks.latency_page VOXEL_MM DATA_DIR`` is the stack's process: it
 prints the session's addresses as one JSON line and serves until its stdin closes.
 """
 
@@ -32,9 +32,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .chromium import WEBGL_ARGS, launch, missing
-from .latency import CHUNK, _Client, _Cut, _pin, _stats
-from .procstat import children, cpu_s
+from burrforce.server.bench.latency import (
+    CHUNK,
+    GrooveCut,
+    StreamClient,
+    page_section,
+    pin_cpus,
+    run_stats,
+)
+from burrforce.server.bench.procstat import children, cpu_s
+from support.chromium import WEBGL_ARGS, launch, missing
+
+from . import child_env
 
 MODES = ("page closed", "page open")
 SESSION_ID = 1
@@ -58,9 +67,9 @@ STATE = ("() => window.burrforceView ? {selected: burrforceView.state.selected, 
 
 
 def _serve(voxel_mm: float, data_dir: Path) -> int:
-    from ..api.config import ServeConfig
-    from ..api.models import Parameters
-    from ..api.stack import ServerStack
+    from burrforce.server.api.config import ServeConfig
+    from burrforce.server.api.models import Parameters
+    from burrforce.server.api.stack import ServerStack
 
     config = ServeConfig(http_port=0, udp_port=0, workers=1, data_dir=data_dir)
     with ServerStack(config, os.environ.pop(TOKEN_ENV), journal=False) as stack:
@@ -144,9 +153,9 @@ def run(samples: int, voxel_mm: float, rate_hz: float = 1000.0, chunk: int = CHU
     data = tempfile.TemporaryDirectory(prefix="burrforce-bench-page-")
     say("live view: starting the stack (workpiece, one cutting session) and chromium")
     stack = subprocess.Popen(
-        [sys.executable, "-m", "burrforce.server.bench.latency_page", str(voxel_mm), data.name],
+        [sys.executable, "-m", "benchmarks.latency_page", str(voxel_mm), data.name],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-        env={**os.environ, TOKEN_ENV: token})
+        env=child_env({TOKEN_ENV: token}))
     try:
         line = stack.stdout.readline()  # type: ignore[union-attr]
         if not line:
@@ -213,9 +222,10 @@ def _measure(browser, info: dict, token: str, samples: int, voxel_mm: float, rat
     page.on("console", lambda m: errors.append(f"console: {m.text}") if m.type == "error"
             else None)
     page.goto("about:blank")
-    placement = _pin(info["hot_pid"])
+    placement = pin_cpus(info["hot_pid"])
     url = f"{info['url']}/ui/#token={token}&session={SESSION_ID}"
-    client = _Client(tuple(info["udp"]), SESSION_ID, bytes.fromhex(info["key_hex"]), _Cut())
+    client = StreamClient(tuple(info["udp"]), SESSION_ID, bytes.fromhex(info["key_hex"]),
+                          GrooveCut())
     period = 1.0 / rate_hz
     kept = {m: {"rtt": [], "cutting": [], "lost": 0, "wall_s": 0.0} | dict.fromkeys(GROUPS, 0.0)
             for m in MODES}
@@ -270,7 +280,7 @@ def _measure(browser, info: dict, token: str, samples: int, voxel_mm: float, rat
         k = kept[mode]
         rtt = np.array(k["rtt"])
         mask = np.array(k["cutting"], dtype=bool)
-        row = asdict(_stats(mode, f"{rate_hz:g} Hz" if rate_hz != 1000.0 else "1 kHz",
+        row = asdict(run_stats(mode, f"{rate_hz:g} Hz" if rate_hz != 1000.0 else "1 kHz",
                             rtt[mask], k["lost"], float(mask.mean()) if len(mask) else 0.0))
         row["wall_s"] = k["wall_s"]
         row |= {f"{g}_cpu_pct": 100.0 * k[g] / k["wall_s"] for g in GROUPS}
@@ -295,7 +305,7 @@ def _measure(browser, info: dict, token: str, samples: int, voxel_mm: float, rat
 def markdown(page: dict) -> list[str]:
     """``latency.md``'s live-view section: a paragraph and a table (or why it was skipped)."""
     if page.get("skipped"):
-        return ["", f"Live view (`page closed` / `page open`): skipped — {page['skipped']}."]
+        return page_section(page)
     closed, opened = page["runs"]
     wall = opened["wall_s"]
     lines = [

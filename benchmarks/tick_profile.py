@@ -1,6 +1,6 @@
 """Instruction count per bone tick on the accuracy groove, repeatable on a busy machine.
 
-``python -m burrforce.server.bench.tick_profile`` ploughs one of ``bench accuracy``'s grooves
+``python -m benchmarks.tick_profile`` ploughs one of ``bench accuracy``'s grooves
 and reports the callgrind instruction count (Ir) per tick: it runs itself under
 ``valgrind --tool=callgrind --instr-atstart=no`` and switches instrumentation on only around
 the measured ticks (client requests through a tiny C helper built with the system's cc and
@@ -13,8 +13,8 @@ each runs the revolved tick (``bone.tick_revolved``: every burr but the round ab
 
 Examples::
 
-    .venv/bin/python -m burrforce.server.bench.tick_profile --grid aligned
-    .venv/bin/python -m burrforce.server.bench.tick_profile --grid oblique --part carve
+    .venv/bin/python -m benchmarks.tick_profile --grid aligned
+    .venv/bin/python -m benchmarks.tick_profile --grid oblique --part carve
 """
 
 from __future__ import annotations
@@ -30,20 +30,26 @@ import time
 
 import numpy as np
 
-from .. import compile_cache
+from burrforce.server import compile_cache
 
 # Run as ``python -m``, not through the ``burrforce`` command: point numba at the cache of
 # these sources before it is imported (its cache keys a kernel on its own file only, so the
 # shared default cache can hold a tick compiled from other sources).
 compile_cache.configure()
 
-from ..bone import BoneEngine, ShaftParams  # noqa: E402
-from ..bone.carve import carve_sphere  # noqa: E402
-from ..model import thesis_cases  # noqa: E402
-from ..model.shapes import Burr, Fluted, Sphere  # noqa: E402
-from .accuracy import oblique_rotation  # noqa: E402
-from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block  # noqa: E402
-from .shapes import BURRS, centre_at_depth  # noqa: E402
+from burrforce.server.bench.accuracy import oblique_rotation  # noqa: E402
+from burrforce.server.bench.groove import (  # noqa: E402
+    GROOVE_BLOCK_HI_MM,
+    GROOVE_BLOCK_LO_MM,
+    groove_block,
+)
+from burrforce.server.bench.shapes import BURRS, centre_at_depth  # noqa: E402
+from burrforce.server.bone import BoneEngine, ShaftParams  # noqa: E402
+from burrforce.server.bone.carve import carve_sphere  # noqa: E402
+from burrforce.server.model import thesis_cases  # noqa: E402
+from burrforce.server.model.shapes import Burr, Fluted, Sphere  # noqa: E402
+
+from . import child_env  # noqa: E402
 
 #: ``--burr`` choices: the round abrasive burr (the engine's own, radius 2 mm), the same sphere
 #: with 6 flutes, and the shapes ``bench accuracy`` checks against their references.
@@ -131,8 +137,9 @@ def _callgrind_ir(argv: list[str]) -> int:
         out = os.path.join(tmp, "cg.out")
         cmd = ["valgrind", "--tool=callgrind", "--instr-atstart=no",
                f"--callgrind-out-file={out}", sys.executable, "-m",
-               "burrforce.server.bench.tick_profile", *argv, "--child", tmp]
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+               "benchmarks.tick_profile", *argv, "--child", tmp]
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                       env=child_env())
         with open(out) as f:
             text = f.read()
     m = re.search(r"^totals:\s+(\d+)", text, re.M)
@@ -142,7 +149,7 @@ def _callgrind_ir(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m burrforce.server.bench.tick_profile",
+    p = argparse.ArgumentParser(prog="python -m benchmarks.tick_profile",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--voxel-mm", type=float, default=0.1)
     p.add_argument("--elements", type=int, default=1152)

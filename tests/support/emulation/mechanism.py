@@ -25,8 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ...haptics.profiles import PROFILES
-from ..falcon.kinematics import (
+from burrforce.server.devices.falcon.kinematics import (
     WORKSPACE_CENTRE_M,
     WORKSPACE_RADIUS_M,
     angle_to_encoder,
@@ -34,7 +33,8 @@ from ..falcon.kinematics import (
     end_effector_force,
     inverse_kinematics,
 )
-from ..sim import GRIP_KG, HAND_B_N_S_MM, HAND_K_N_MM, MAX_SUBSTEP_S
+from burrforce.server.devices.sim import GRIP_KG, HAND_B_N_S_MM, HAND_K_N_MM, MAX_SUBSTEP_S
+from burrforce.server.haptics.profiles import PROFILES
 
 STOP_STIFFNESS_N_M = 200_000.0
 STOP_DAMPING_N_S_M = 200.0

@@ -1,6 +1,6 @@
 """The emulator process: build one emulated device, serve it, print how to reach it.
 
-``python -m burrforce.server.devices.emulation KIND [--options JSON] ...`` prints **one**
+``python -m support.emulation KIND [--options JSON] ...`` prints **one**
 JSON line on stdout, then serves until SIGTERM/SIGINT, the ``shutdown`` command, or (with
 ``--exit-on-stdin-eof``) its stdin closing::
 
@@ -31,9 +31,9 @@ from typing import Any
 #: Emulated device kinds: name → "module:class" (imported on use: numba/numpy stay unloaded
 #: until a kind needs them).
 KINDS = {
-    "falcon": "burrforce.server.devices.emulation.falcon:EmulatedFalcon",
-    "board": "burrforce.server.devices.emulation.board:EmulatedBoard",
-    "loopback": "burrforce.server.devices.emulation.loopback:LoopbackFunction",
+    "falcon": "support.emulation.falcon:EmulatedFalcon",
+    "board": "support.emulation.board:EmulatedBoard",
+    "loopback": "support.emulation.loopback:LoopbackFunction",
 }
 
 
@@ -51,7 +51,7 @@ def make_function(kind: str, options: dict[str, Any]) -> Any:
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="python -m burrforce.server.devices.emulation",
+        prog="python -m support.emulation",
         description="Emulate a USB device (umockdev + usbfs) for drivers under test.")
     parser.add_argument("kind", choices=sorted(KINDS))
     parser.add_argument("--options", default="{}",

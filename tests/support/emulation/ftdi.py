@@ -22,7 +22,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from ..falcon import protocol as fp
+from burrforce.server.devices.falcon import protocol as fp
+
 from .function import DIR_IN, TYPE_MASK, TYPE_VENDOR, EmulatedFunction, Endpoint
 
 #: Modem status: byte 0 = CTS | DSR | bit 0 (always set), byte 1 = THRE | TEMT (idle line).

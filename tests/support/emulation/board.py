@@ -25,7 +25,8 @@ from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
 
-from ..actuators import board_protocol as bp
+from burrforce.server.devices.actuators import board_protocol as bp
+
 from .function import EmulatedFunction, Endpoint, Stall
 
 LEVEL_WINDOW_NS = 10_000_000     # the status's level: peak over the last ≥ 10 ms

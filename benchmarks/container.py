@@ -1,5 +1,6 @@
-"""``burrforce bench container``: the server image built with podman, its size and build time,
-and the round trip through it beside the bare process's, in one run.
+"""``python -m benchmarks.container [--out benchmarks]``, from a checkout's root (the project's
+own measurement: it needs podman): the server image built with podman, its size and build time, and
+the round trip through it beside the bare process's, in one run.
 
 Three servers on this machine, each ``burrforce serve`` cutting the thesis's workpiece
 (phantom:workpiece at 0.1 mm, one hot-loop worker, si_mm):
@@ -19,7 +20,6 @@ the last CPU, the client on the first, as in ``bench latency``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
 import json
 import shutil
@@ -34,11 +34,13 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from ..cli.args import int_in
-from .latency import CHUNK, _Client, _Cut, _pin, _stats
-from .podman import HTTP_PORT, UDP_PORT, Podman, PodmanError, free_port
-from .serve_process import spawn_serve
-from .timing import machine_line
+from burrforce.server.bench import runner
+from burrforce.server.bench.latency import CHUNK, GrooveCut, StreamClient, pin_cpus, run_stats
+from burrforce.server.bench.serve_process import spawn_serve
+from burrforce.server.cli.args import int_in
+from support.podman import HTTP_PORT, UDP_PORT, Podman, PodmanError, free_port
+
+from . import ROOT
 
 TAG = "localhost/burrforce:bench"
 TOKEN = "bench-container-token-0123456789"
@@ -71,9 +73,8 @@ def _session(podman: Podman, name: str, folder: Path) -> tuple[int, bytes]:
 
 def run(samples: int, build: bool = True, progress=None) -> dict:
     say = progress or (lambda text: None)
-    root = Path(__file__).resolve().parents[2]
-    if not (root / "docker" / "Dockerfile").exists():
-        raise RuntimeError(f"no docker/Dockerfile under {root}: run from a source checkout")
+    if not (ROOT / "docker" / "Dockerfile").exists():
+        raise RuntimeError(f"no docker/Dockerfile under {ROOT}")
     folder = Path(tempfile.mkdtemp(prefix="burrforce-bench-container-"))
     podman = Podman(folder / "podman")
     reason = podman.unavailable()
@@ -84,7 +85,7 @@ def run(samples: int, build: bool = True, progress=None) -> dict:
     build_s = None
     if build or not podman.image_exists(TAG):
         say("building the image, every layer anew (podman build --no-cache)")
-        build_s = podman.build(TAG, root, base, layer_cache=False)
+        build_s = podman.build(TAG, ROOT, base, layer_cache=False)
     size_mb = podman.image_size_bytes(TAG) / 1e6
     base_mb = podman.image_size_bytes(base) / 1e6
     boxes = []
@@ -112,15 +113,15 @@ def run(samples: int, build: bool = True, progress=None) -> dict:
             box.wait_http(f"http://127.0.0.1:{http_port}/v1/health", timeout_s=180)
             ready[name] = time.monotonic() - t0
         key_bare = bytes.fromhex(bare.connection.key_hex or "")
-        clients = {"bare": _Client((bare.connection.host, bare.connection.udp_port),
-                                   bare.connection.session, key_bare, _Cut())}
+        clients = {"bare": StreamClient((bare.connection.host, bare.connection.udp_port),
+                                   bare.connection.session, key_bare, GrooveCut())}
         for (name, _, _, _, udp, _), target in zip(specs, TARGETS[1:], strict=True):
             session, key = _session(podman, name, folder)
-            clients[target] = _Client(("127.0.0.1", udp), session, key, _Cut())
+            clients[target] = StreamClient(("127.0.0.1", udp), session, key, GrooveCut())
         pids = [_loop_pid(bare_http)] + [
             _host_pid(podman, spec[0], _loop_pid(f"http://127.0.0.1:{spec[5]}"))
             for spec in specs]
-        placement = _pin(*pids)
+        placement = pin_cpus(*pids)
         gc.collect()
         gc.freeze()
         done = 0
@@ -135,7 +136,7 @@ def run(samples: int, build: bool = True, progress=None) -> dict:
             c = clients[target]
             mask = np.array(c.cutting, dtype=bool)
             rtt = np.array(c.rtt_us)[mask]
-            runs.append(asdict(_stats(target, "1 kHz", rtt, c.lost,
+            runs.append(asdict(run_stats(target, "1 kHz", rtt, c.lost,
                                       float(mask.mean()) if len(mask) else 0.0)))
     finally:
         for box in boxes:
@@ -152,17 +153,14 @@ def run(samples: int, build: bool = True, progress=None) -> dict:
 
 
 def write_results(result: dict, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = dt.datetime.now().strftime("%Y-%m-%d %H:%M")
-    result = {**result, "date": stamp, "machine": machine_line()}
-    json_path = out / "container.json"
-    json_path.write_text(json.dumps(result, indent=2) + "\n")
+    result, json_path = runner.save_json(out, "container", result)
+    stamp = result["date"]
     runs = {r["mode"]: r for r in result["runs"]}
     bare = runs["bare"]["p50_us"]
     build = (f"{result['build_seconds']:.0f} s" if result["build_seconds"] is not None
              else "not rebuilt in this run")
     lines = [
-        "# The server image (`burrforce bench container`)",
+        "# The server image (`python -m benchmarks.container`)",
         "",
         f"{stamp}; {result['machine']}; {result['podman']}. One run.",
         "",
@@ -192,9 +190,9 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "container", help="the server image: size, build time, round trip against the bare "
-                          "process",
+    p = runner.add_bench(
+        sub, "container", main,
+        help="the server image: size, build time, round trip against the bare process",
         description="Build docker/Dockerfile with podman (from a local Debian base made with "
                     "mmdebstrap: no registry), then measure round trips while cutting through "
                     "the bare process, the container on the host network and the container "
@@ -204,21 +202,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="round trips per server at 1 kHz. Default 10000")
     p.add_argument("--no-build", action="store_true",
                    help="reuse the image a previous run built (build time not measured)")
-    p.add_argument("--out", type=Path, default=Path("benchmarks"),
-                   help="results directory. Default ./benchmarks")
-    p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
+    out = runner.out_dir(args)
     try:
-        result = run(args.samples, build=not args.no_build, progress=say)
+        result = run(args.samples, build=not args.no_build, progress=runner.say)
     except (RuntimeError, PodmanError, subprocess.SubprocessError) as exc:
-        print(f"burrforce bench container: {exc}", file=sys.stderr)
+        print(f"python -m benchmarks.container: {exc}", file=sys.stderr)
         return 1
-    md, js = write_results(result, args.out)
-    print(md.read_text())
-    print(f"wrote {md} and {js}")
-    return 0
+    return runner.report(args, *write_results(result, out))
+
+
+if __name__ == "__main__":
+    raise SystemExit(runner.run_alone(add_parser, "container",
+                                      prog="python -m benchmarks.container"))

@@ -1,5 +1,6 @@
 """Headless Debian chromium, the one set of flags for every harness that drives a browser (the
-browser tests, ``bench latency``'s live-view part): no way out of the machine but loopback."""
+browser tests, the live-view part of the project's latency page: ``benchmarks.latency_page``):
+no way out of the machine but loopback."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""podman as the container engine for the image's tests and ``burrforce bench container``.
+"""podman as the container engine for the image's tests and the project's container benchmark
+(``python -m benchmarks.container``).
 
 Docker's engine cannot run on every machine that must build the image (CI's has none);
 podman builds the same Dockerfile daemonless, as root or rootless. What a sandboxed machine
