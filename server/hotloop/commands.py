@@ -268,7 +268,7 @@ def _short_gil_turns(interval_s: float = GIL_TURN_S) -> Iterator[None]:
 
     What is left of a build is milliseconds of plain Python (objects, small arrays: the
     voxel work comes precomputed in a shared bone's file), in stretches up to ~0.5 ms
-    (measured with ``bench.gil_probe``). A packet arriving meanwhile would wait for the
+    (measured with ``benchmarks.gil_probe``). A packet arriving meanwhile would wait for the
     stretch to end, up to a whole turn; shorter turns bound that wait instead."""
     before = sys.getswitchinterval()
     sys.setswitchinterval(interval_s)
