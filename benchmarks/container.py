@@ -34,10 +34,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from burrforce.server.argtypes import int_in
 from burrforce.server.bench import runner
 from burrforce.server.bench.latency import CHUNK, GrooveCut, StreamClient, pin_cpus, run_stats
 from burrforce.server.bench.serve_process import spawn_serve
-from burrforce.server.cli.args import int_in
 from support.podman import HTTP_PORT, UDP_PORT, Podman, PodmanError, free_port
 
 from . import ROOT

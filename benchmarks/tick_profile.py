@@ -37,11 +37,11 @@ from burrforce.server import compile_cache
 # shared default cache can hold a tick compiled from other sources).
 compile_cache.configure()
 
-from burrforce.server.bench.accuracy import oblique_rotation  # noqa: E402
 from burrforce.server.bench.groove import (  # noqa: E402
     GROOVE_BLOCK_HI_MM,
     GROOVE_BLOCK_LO_MM,
     groove_block,
+    oblique_rotation,
 )
 from burrforce.server.bench.shapes import BURRS, centre_at_depth  # noqa: E402
 from burrforce.server.bone import BoneEngine, ShaftParams  # noqa: E402

@@ -7,8 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from burrforce.server.bench.accuracy import oblique_rotation
-from burrforce.server.bench.groove import groove_block
+from burrforce.server.bench.groove import groove_block, oblique_rotation
 from burrforce.server.bench.retrace import (
     CENTRE_Z_MM,
     RPM,

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.args import float_in
+from ..argtypes import float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case
 from . import runner
 from .edges import edge_rows, render_edges
-from .groove import groove_block, run_groove
+from .groove import OBLIQUE_EULER_XYZ_DEG, groove_block, oblique_rotation, run_groove
 from .timing import machine_line
 
 VOXEL_SIZES_MM = (0.05, 0.1, 0.2, 0.4)
@@ -37,9 +37,6 @@ EDGES_INTRO = (
     "force going back over a cut groove, as a share of the first pass's, and the widening "
     "pass's energy balance. Shapes: each burr's model against its own converged reference "
     "(`model.reference_shapes`).")
-#: The oblique grid: rotated 20° about x, then 15° about y, then 10° about z, so every face of
-#: the block cuts its voxels at an angle (as a scanned bone's surface does).
-OBLIQUE_EULER_XYZ_DEG = (20.0, 15.0, 10.0)
 
 
 @dataclass(frozen=True)
@@ -56,16 +53,6 @@ class AccuracyRow:
     ripple_rel: float
     tick_p50_us: float
     tick_p99_us: float
-
-
-def oblique_rotation() -> np.ndarray:
-    rot = np.eye(3)
-    for axis, deg in zip("xyz", OBLIQUE_EULER_XYZ_DEG, strict=True):
-        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-        r = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
-             "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
-        rot = np.asarray(r) @ rot
-    return rot
 
 
 def run(voxel_sizes: tuple[float, ...], n_thetas: tuple[int, ...], oblique: bool,

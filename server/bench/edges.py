@@ -6,15 +6,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from .plunge import plunge_rows
+from .retrace import retrace_rows
+from .shapes import shape_rows
+
 
 def edge_rows(voxel_mm: float = 0.1, oblique: bool = True,
               progress: Callable[[dict], None] | None = None) -> list[dict]:
     """Plunge, retrace and shape rows at ``voxel_mm`` (aligned grid, and oblique unless
     ``oblique`` is False)."""
-    from .plunge import plunge_rows
-    from .retrace import retrace_rows
-    from .shapes import shape_rows
-
     grids = ("aligned", "oblique") if oblique else ("aligned",)
     rows: list[dict] = []
     for make in (lambda: _plunge_edges(plunge_rows(voxel_mm=voxel_mm), grids),

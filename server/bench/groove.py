@@ -16,6 +16,22 @@ from ..bone.grid import BoneGrid
 from ..model.cases import CuttingCase
 from ..model.kernels import OUT_FORCE, OUT_POWER
 
+#: The oblique grid: rotated 20° about x, then 15° about y, then 10° about z, so every face of
+#: the block cuts its voxels at an angle (as a scanned bone's surface does).
+OBLIQUE_EULER_XYZ_DEG = (20.0, 15.0, 10.0)
+
+
+def oblique_rotation() -> np.ndarray:
+    """(3, 3) rotation of the oblique grid (:data:`OBLIQUE_EULER_XYZ_DEG`)."""
+    rot = np.eye(3)
+    for axis, deg in zip("xyz", OBLIQUE_EULER_XYZ_DEG, strict=True):
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        r = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+             "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
+        rot = np.asarray(r) @ rot
+    return rot
+
+
 #: A 12 × 12 × 4 mm block (top at z = 0) is enough for a few-mm groove in any direction.
 GROOVE_BLOCK_LO_MM = (0.0, 0.0, -4.0)
 GROOVE_BLOCK_HI_MM = (12.0, 12.0, 0.0)

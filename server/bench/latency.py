@@ -63,7 +63,7 @@ import numpy as np
 from ...proto.codec import decode_server_message, encode_pose
 from ...proto.messages import FLAG_RESET_VELOCITY, NEW_STREAM, STATUS_CUTTING, Notice, Pose
 from ...proto.tag import Tagger, new_key
-from ..cli.args import float_in, int_in
+from ..argtypes import float_in, int_in
 from . import runner
 
 MODES = ("echo", "overhead", "cutting", "blocking", "realtime", "watched", "minimal", "hogged",

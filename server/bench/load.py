@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.args import int_in
+from ..argtypes import int_in
 from . import runner
 from .timing import machine_line
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ...proto.tag import new_key
-from ..cli.args import float_in, int_in
+from ..argtypes import float_in, int_in
 from . import runner
 
 STREAM_SESSION = 1

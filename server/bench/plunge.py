@@ -20,8 +20,7 @@ from ..model import CuttingModel, CuttingParams
 from ..model.burr import DEFAULT_N_THETA
 from ..model.kernels import OUT_FORCE, OUT_VOLUME_RATE
 from ..model.reference import plunge_removal_mm3_s
-from .accuracy import oblique_rotation
-from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block
+from .groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block, oblique_rotation
 
 PLUNGE_RPM = 60000.0
 PLUNGE_FEED_MM_S = 1.0

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bone import BoneEngine, ShaftParams
-from .groove import groove_block
+from .groove import groove_block, oblique_rotation
 
 RPM = 60000.0
 UP = (0.0, 0.0, 1.0)
@@ -63,7 +63,6 @@ def retrace_rows(voxel_mm: float = 0.1, grids: tuple[str, ...] = ("aligned", "ob
                  ) -> list[dict]:
     """``bench accuracy``'s retrace rows: per grid, ghost power and force of each pass over
     the cut groove (share of the first pass's) and the widening pass's energy balance."""
-    from .accuracy import oblique_rotation
 
     rows = []
     for grid in grids:

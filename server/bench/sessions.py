@@ -62,7 +62,7 @@ import numpy as np
 
 from ...client.udp import SessionRules
 from ...proto.messages import HELLO_STREAM, NEW_STREAM, SEQ_MODULUS, STATUS_CUTTING, Notice
-from ..cli.args import float_in, int_at_least
+from ..argtypes import float_in, int_at_least
 from . import runner
 from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, HELLO_TRIES, RPM, GrooveCut
 from .procstat import cpu_s

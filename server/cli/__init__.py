@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .. import __version__, compile_cache
-from .args import float_at_least, int_in
+from ..argtypes import float_at_least, int_in
 
 _positive_float = float_at_least(0.0, inclusive=False)
 _non_negative_float = float_at_least(0.0, inclusive=True)

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .args import float_in
+from ..argtypes import float_in
 
 _confidence = float_in(0.5, 0.999, "confidence")
 _trim = float_in(0.0, 0.45, "trim fraction")

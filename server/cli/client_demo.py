@@ -13,7 +13,7 @@ from ...client import connection
 from ...client.demo import plot, run_demo, summary
 from ...client.udp import BurrClient, ServerGone, StreamTaken
 from ...proto import frames
-from .args import float_in, int_in
+from ..argtypes import float_in, int_in
 
 
 def model_expectation(depth_mm: float, feed_mm_s: float, rpm: float, angle_deg: float,

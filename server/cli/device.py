@@ -7,7 +7,7 @@ import json
 import sys
 import time
 
-from .args import float_in
+from ..argtypes import float_in
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from .args import float_at_least, float_in
+from ..argtypes import float_at_least, float_in
 
 _non_negative_float = float_at_least(0.0, inclusive=True)
 _k = float_in(0.0, 100.0, "K")

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .args import float_at_least
+from ..argtypes import float_at_least
 from .replay import _check_writable, _Progress
 
 _positive = float_at_least(0.0, inclusive=False)

@@ -30,8 +30,8 @@ from ..api.config import (
     is_loopback,
     load_config,
 )
+from ..argtypes import float_in, int_at_least, int_in
 from ..haptics.profiles import PROFILES
-from .args import float_in, int_at_least, int_in
 from .client_demo import EXIT_GAVE_WAY
 from .device import add_loop_options, loop_config
 

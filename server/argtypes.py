@@ -1,4 +1,5 @@
-"""argparse types shared by the commands: numbers in a range, with messages that say which."""
+"""argparse types shared by the commands and the benchmarks (`cli`, `bench`): numbers in a range,
+with messages that say which. Below both, so a benchmark never imports the command line."""
 
 from __future__ import annotations
 
