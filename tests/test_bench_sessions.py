@@ -11,6 +11,7 @@ import pytest
 from scheduling import FIFO_REASON, fifo_permitted
 
 from burrforce.server.bench import sessions as bench_sessions
+from burrforce.server.bench import stations
 from burrforce.server.cli import main
 from burrforce.server.realtime import HOT_LOOP_PRIORITY
 
@@ -67,18 +68,18 @@ def test_the_markdown_has_a_table_per_count_the_machine_and_the_target(smoke):
 
 
 def test_independent_stations_have_their_own_phase_and_rate():
-    offsets, periods = bench_sessions.station_clocks(64, "independent", seed=7)
+    offsets, periods = stations.station_clocks(64, "independent", seed=7)
     assert offsets.shape == periods.shape == (64,)
-    assert 0 <= offsets.min() and offsets.max() < bench_sessions.PERIOD_NS
-    assert np.ptp(offsets) > 0.5 * bench_sessions.PERIOD_NS   # spread over the period
-    spread = np.abs(periods / bench_sessions.PERIOD_NS - 1) * 1e6
-    assert spread.max() <= bench_sessions.RATE_SPREAD_PPM and spread.max() > 10.0
-    again = bench_sessions.station_clocks(64, "independent", seed=7)
+    assert 0 <= offsets.min() and offsets.max() < stations.PERIOD_NS
+    assert np.ptp(offsets) > 0.5 * stations.PERIOD_NS   # spread over the period
+    spread = np.abs(periods / stations.PERIOD_NS - 1) * 1e6
+    assert spread.max() <= stations.RATE_SPREAD_PPM and spread.max() > 10.0
+    again = stations.station_clocks(64, "independent", seed=7)
     assert np.array_equal(again[0], offsets) and np.array_equal(again[1], periods)
-    offsets, periods = bench_sessions.station_clocks(8, "aligned")
-    assert not offsets.any() and np.all(periods == bench_sessions.PERIOD_NS)
+    offsets, periods = stations.station_clocks(8, "aligned")
+    assert not offsets.any() and np.all(periods == stations.PERIOD_NS)
     with pytest.raises(ValueError, match="phases"):
-        bench_sessions.station_clocks(8, "random")
+        stations.station_clocks(8, "random")
 
 
 def test_session_counts_are_parsed_and_checked():

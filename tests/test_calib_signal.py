@@ -9,15 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from burrforce.server.calib.recording import Recording
-from burrforce.server.calib.signal import (
+from burrforce.server.calib.segments import find_segments
+from burrforce.server.calib.signal import analyse
+from burrforce.server.calib.synthetic import synthetic_recording
+from burrforce.server.calib.tones import (
     AnalysisError,
-    analyse,
     dominant_frequency,
-    find_segments,
     peak_amplitude,
     sine_fit,
 )
-from burrforce.server.calib.synthetic import synthetic_recording
 
 FS = 3000.0
 MEAN = np.array([2.0, -1.0, 5.0])
