@@ -29,8 +29,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from ..hotloop import HotLoopProcess
 from .daemon import start_daemon, stop_daemon
-from .manager import ControlPlane
 from .metrics import LoopStats
+from .plane import ControlPlane
 
 log = logging.getLogger("burrforce.supervisor")
 
