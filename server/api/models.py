@@ -459,3 +459,31 @@ class StorageReport(Answer):
     free_bytes: int | None
     disk_free_bytes: int | None
     kinds: dict[str, KindUsage]
+
+
+class ParametersView(Answer):
+    """A session's parameters (``GET``/``PATCH /v1/sessions/ID/parameters``)."""
+
+    us_n_mm2: Number | None = Field(description="the primary material's Us, N/mm²")
+    k: Number | None = Field(description="the primary material's K")
+    primary_material: int | None
+    primary_material_name: str | None
+    fd_N: Number
+    g: Number
+    harmonic: Number
+    burr: dict[str, Any]
+    burr_calibrated: bool
+    burr_profile_mm: list[list[Number]] = Field(
+        description="the burr's generatrix, tip to top, as (ρ, z) mm in the tool frame")
+    radius_mm: Number
+    spin: str
+    min_cutting_rpm: Number
+    shaft_radius_mm: Number
+    shaft_length_mm: Number
+    shaft_stiffness_n_mm3: Number
+    frame: str
+    tool_axis: list[Number] | None
+    placement_position: list[Number]
+    placement_orientation: list[Number]
+    device: str | None
+    device_limits: dict[str, Any] | None

@@ -17,6 +17,7 @@ from .models import (
     MaterialPatch,
     MaterialView,
     Parameters,
+    ParametersView,
     SessionCreate,
     SessionCreated,
     SessionView,
@@ -106,12 +107,12 @@ def load_bone(body: BoneRequest, plane: PlaneDep, session_id: int = SessionPath,
     return plane.jobs[job.id].public()
 
 
-@router.get("/sessions/{session_id}/parameters")
+@router.get("/sessions/{session_id}/parameters", response_model=ParametersView)
 def get_parameters(plane: PlaneDep, session_id: int = SessionPath) -> dict:
     return parameters_view(plane.get(session_id))
 
 
-@router.patch("/sessions/{session_id}/parameters")
+@router.patch("/sessions/{session_id}/parameters", response_model=ParametersView)
 def patch_parameters(body: Parameters, plane: PlaneDep,
                      session_id: int = SessionPath) -> dict:
     """Change any subset. ``us_n_mm2`` and ``k`` set the primary material's (see
