@@ -5,7 +5,6 @@ the real stack (hot loop, uvicorn, httpx, UDP clients cutting, real files)."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import io
 import tarfile
 from contextlib import contextmanager
@@ -48,13 +47,13 @@ def api(stack):
 @contextmanager
 def budget(stack, budget_bytes: int):
     """The server's budget set to ``budget_bytes`` for a while (read at every write)."""
-    plane = stack.plane
-    before = plane.config
-    plane.config = dataclasses.replace(before, data_budget_bytes=budget_bytes)
+    storage = stack.plane.storage
+    before = storage.budget_bytes
+    storage.budget_bytes = budget_bytes
     try:
         yield
     finally:
-        plane.config = before
+        storage.budget_bytes = before
 
 
 def _session(api, **body) -> dict:

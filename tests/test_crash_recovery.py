@@ -252,7 +252,7 @@ def test_stale_shared_bone_directories_of_killed_servers_are_removed(tmp_path):
     import subprocess
     import sys
 
-    from burrforce.server.api.manager import OWNER_FILE, remove_stale_run_directories
+    from burrforce.server.api.housekeeping import OWNER_FILE, remove_stale_run_directories
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True, check=True).stdout.strip()

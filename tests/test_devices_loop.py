@@ -226,7 +226,7 @@ def test_a_failed_attach_leaves_the_session_as_it_was(stack):
 
 def test_frame_and_placement_are_frozen_while_a_device_is_attached(stack):
     session = _session(stack, sid=15)
-    stack.plane.devices.attach(stack.plane, 15, lambda s, h, p: _config(stack, session))
+    stack.plane.attach_device(15, lambda s, h, p: _config(stack, session))
     headers = {"Authorization": f"Bearer {TOKEN}"}
     url = stack.url + "/v1/sessions/15/parameters"
     for body in ({"frame": "unity"}, {"placement_position": [1, 2, 3]}):
@@ -247,7 +247,7 @@ def test_attaching_to_a_missing_session_is_404(stack):
 
 def test_deleting_a_session_stops_its_device(stack):
     session = _session(stack, sid=12)
-    process = stack.plane.devices.attach(stack.plane, 12, lambda s, h, p: _config(stack, session))
+    process = stack.plane.attach_device(12, lambda s, h, p: _config(stack, session))
     assert process.is_alive()
     stack.plane.delete_session(12)
     assert not process.is_alive() and process.status()["state"] == "stopped"

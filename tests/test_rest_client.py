@@ -44,7 +44,7 @@ class LiveServer:
     def recreate_session(self) -> None:
         """The fixture session again as it started (same id and key, fresh settings and
         bone), whatever was done to it."""
-        from burrforce.server.api.manager import ApiError
+        from burrforce.server.api.errors import ApiError
 
         _create_fixture_session(self.plane, self.session_id, self.key_hex, replace=True)
         try:
@@ -56,7 +56,7 @@ class LiveServer:
 def _create_fixture_session(plane, session_id: int | None = None, key_hex: str | None = None,
                             replace: bool = False):
     """A session on phantom:workpiece at VOXEL_MM with default settings, loaded."""
-    from burrforce.server.api.manager import ApiError
+    from burrforce.server.api.errors import ApiError
     from burrforce.server.api.models import Features, Parameters
 
     if replace:
@@ -84,8 +84,9 @@ def live_server(tmp: Path) -> Iterator[LiveServer]:
 
     from burrforce.server.api.app import create_app
     from burrforce.server.api.config import ServeConfig
-    from burrforce.server.api.manager import ControlPlane, start_hot_loop
     from burrforce.server.api.metrics import LoopStats
+    from burrforce.server.api.plane import ControlPlane
+    from burrforce.server.api.workers import start_hot_loop
     from burrforce.server.bone import phantom, save_bone
 
     library = tmp / "library"

@@ -14,9 +14,18 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from .. import __version__
 from ..realtime import is_realtime
+from . import (
+    routes_calibration,
+    routes_data,
+    routes_devices,
+    routes_mesh,
+    routes_sessions,
+    routes_telemetry,
+)
 from .docs_pages import add_docs_pages
-from .manager import ApiError, ControlPlane
+from .errors import ApiError, Invalid, Unauthorized, http_status
 from .metrics import LoopStats, registry
+from .plane import ControlPlane
 from .sources import SourceError
 from .supervisor import Supervisor, worker_state
 from .ui_pages import add_ui_pages
@@ -28,20 +37,11 @@ _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats,
                supervisor: Supervisor | None = None) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
-    from . import (
-        routes_calibration,
-        routes_data,
-        routes_devices,
-        routes_mesh,
-        routes_sessions,
-        routes_telemetry,
-    )
-
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
                                                           token.encode()):
-            raise ApiError(401, "missing or wrong bearer token (Authorization: Bearer TOKEN; "
-                                "`burrforce serve` printed it, or see its --token)")
+            raise Unauthorized("missing or wrong bearer token (Authorization: Bearer TOKEN; "
+                               "`burrforce serve` printed it, or see its --token)")
 
     app = FastAPI(
         title="burrforce control plane", version=__version__,
@@ -65,16 +65,17 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        # The one place a domain error becomes HTTP (errors.HTTP_STATUS).
+        headers = {"WWW-Authenticate": "Bearer"} if isinstance(exc, Unauthorized) else None
         # 422 keeps FastAPI's documented form (a list of errors) for every cause.
         detail = ([{"loc": [], "msg": exc.detail, "type": "value_error"}]
-                  if exc.status == 422 else exc.detail)
-        return JSONResponse({"detail": detail}, status_code=exc.status, headers=headers)
+                  if isinstance(exc, Invalid) else exc.detail)
+        return JSONResponse({"detail": detail}, status_code=http_status(exc), headers=headers)
 
     @app.exception_handler(SourceError)
     async def _source_error(request: Request, exc: SourceError) -> JSONResponse:
-        # A bad bone source or snapshot name raised anywhere below a route: its own status.
-        return await _api_error(request, ApiError(exc.status, str(exc)))
+        # A bad bone source or snapshot name raised anywhere below a route: its own error.
+        return await _api_error(request, exc.as_api_error())
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -86,7 +86,7 @@ class ServeConfig:
         max_sessions: sessions the server holds at once (each keeps its bone in memory).
         workers: hot-loop processes; worker i listens on ``udp_port + i``, each session runs
             on one of them for life. None: one (``burrforce serve`` picks
-            ``hotloop.process.default_workers()``).
+            ``hotloop.pool.default_workers()``).
         wake_ahead_us, wake_cpu_share: each hot loop wakes this long before its streams'
             predicted packets and polls for them, while it is awake less than this share of
             a core (``hotloop.wake``); a lead of 0 blocks until each datagram arrives.

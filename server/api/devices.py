@@ -6,7 +6,8 @@ import threading
 
 from ..devices.loop import DeviceLoopConfig
 from ..devices.process import DeviceProcess
-from .manager import ApiError, ControlPlane
+from .errors import Conflict, Invalid, NotFound
+from .sessions import ManagedSession
 
 #: How long an attach waits for the loop to open its device (homing continues after).
 OPEN_WAIT_S = 10.0
@@ -19,26 +20,28 @@ class DeviceAttachments:
         self._lock = threading.Lock()
         self.loops: dict[int, DeviceProcess] = {}
 
-    def attach(self, plane: ControlPlane, session_id: int, make_config) -> DeviceProcess:
-        """Start a device loop for a ready session. ``make_config(session, host, port)``
-        returns its DeviceLoopConfig (ValueError → 422). Waits until the device is open (or
-        homing); a loop that fails to open is removed and its reason raised as 422 (the
-        request names a device this machine cannot open: not plugged in, no permission, a
-        vendor library or firmware missing)."""
-        session = plane.ready(session_id)
-        host, port = plane.address(session)
+    def attach(self, session: ManagedSession, address: tuple[str, int],
+               make_config) -> DeviceProcess:
+        """Start a device loop for a ready session whose hot loop listens on ``address``.
+        ``make_config(session, host, port)`` returns its DeviceLoopConfig (ValueError →
+        Invalid). Waits until the device is open (or homing); a loop that fails to open is
+        removed and its reason raised as Invalid (the request names a device this machine
+        cannot open: not plugged in, no permission, a vendor library or firmware missing).
+        Conflict: the session drives a device already."""
+        session_id = session.id
+        host, port = address
         if host in ("0.0.0.0", "::", ""):
             host = "127.0.0.1" if host != "::" else "::1"
         try:
             config: DeviceLoopConfig = make_config(session, host, port)
         except ValueError as exc:
-            raise ApiError(422, str(exc)) from None
+            raise Invalid(str(exc)) from None
         with self._lock:
             old = self.loops.get(session_id)
             # A loop being attached (not started yet) holds its slot as much as a running one.
             if old is not None and (old.started_s is None or old.is_alive()):
-                raise ApiError(409, f"session {session_id} already drives {old.config.device}; "
-                                    "DELETE its device first")
+                raise Conflict(f"session {session_id} already drives {old.config.device}; "
+                               "DELETE its device first")
             process = DeviceProcess(config)
             self.loops[session_id] = process
         if old is not None:
@@ -51,21 +54,21 @@ class DeviceAttachments:
             with self._lock:
                 if self.loops.get(session_id) is process:
                     del self.loops[session_id]
-            raise ApiError(422, reasons[-1] if reasons else f"the device loop {state}")
+            raise Invalid(reasons[-1] if reasons else f"the device loop {state}")
         return process
 
     def get(self, session_id: int) -> DeviceProcess:
         with self._lock:
             process = self.loops.get(session_id)
         if process is None:
-            raise ApiError(404, f"session {session_id} has no device attached")
+            raise NotFound(f"session {session_id} has no device attached")
         return process
 
     def detach(self, session_id: int) -> dict:
         with self._lock:
             process = self.loops.pop(session_id, None)
         if process is None:
-            raise ApiError(404, f"session {session_id} has no device attached")
+            raise NotFound(f"session {session_id} has no device attached")
         process.stop()
         return process.status()
 

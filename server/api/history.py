@@ -30,15 +30,12 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .daemon import start_daemon, stop_daemon
+from .sessions import ManagedSession, SessionTable
 from .telemetry import TelemetryReader
-
-if TYPE_CHECKING:
-    from .manager import ControlPlane, ManagedSession
 
 log = logging.getLogger("burrforce.api")
 
@@ -122,12 +119,12 @@ class _Track:
 
 
 class TelemetryHistory:
-    """Samples ``plane``'s ready sessions from one thread (:meth:`start`/:meth:`stop`) and
+    """Samples the ready ones of ``sessions`` from one thread (:meth:`start`/:meth:`stop`) and
     keeps their histories; :meth:`view` copies one out. Thread-safe."""
 
-    def __init__(self, plane: ControlPlane, reader: TelemetryReader,
+    def __init__(self, sessions: SessionTable, reader: TelemetryReader,
                  hz: float = HISTORY_HZ) -> None:
-        self.plane = plane
+        self.sessions = sessions
         self.reader = reader
         self.hz = float(hz)
         self._tracks: dict[int, _Track] = {}
@@ -184,9 +181,9 @@ class TelemetryHistory:
 
     def sample_once(self) -> int:
         """One pass over the ready sessions (the thread's); returns how many were ready."""
-        plane = self.plane
+        sessions = self.sessions
         ready = 0
-        for session in list(plane.sessions.values()):
+        for session in sessions.values():
             if session.state != "ready":
                 continue
             ready += 1
@@ -195,7 +192,7 @@ class TelemetryHistory:
             if sample is None or not sample.packet:
                 continue
             with self._lock:
-                if plane.sessions.get(session.id) is not session:
+                if sessions.get(session.id) is not session:
                     continue  # deleted meanwhile (drop ran, or will)
                 track = self._tracks.get(session.id)
                 if track is None or track.owner is not session:

@@ -31,17 +31,15 @@ from pathlib import Path
 
 from .config import is_loopback
 from .daemon import start_daemon, stop_daemon
+from .errors import ApiError
+from .housekeeping import journal_dir
 from .journal_carve import CarveLog, apply_log, read_log, write_atomic
-from .manager import (
-    ApiError,
-    ControlPlane,
-    ManagedSession,
-    journal_dir,
-    later_stream,
-    next_stream_after,
-)
 from .models import Features, Parameters
+from .plane import ControlPlane
+from .sessions import ManagedSession
 from .sources import SourceError, file_source
+from .views import parameters_view
+from .workers import later_stream, next_stream_after
 
 log = logging.getLogger("burrforce.journal")
 
@@ -57,8 +55,6 @@ CARVE_FILE = "carve.log"
 
 def session_record(session: ManagedSession, stream: int | None) -> dict:
     """What it takes to build ``session`` again (JSON-ready)."""
-    from .routes_sessions import parameters_view
-
     params = parameters_view(session)
     params.pop("burr_calibrated")  # follows from the burr
     params.pop("burr_profile_mm")  # likewise
@@ -147,7 +143,7 @@ class Journal:
             finally:
                 session.lock.release()
         live = self.plane.sessions
-        for sid in list(self._written) + [int(p.name) for p in self._folders()]:
+        for sid in list(self._written) + [int(p.name) for p in self.folders()]:
             if sid not in live:
                 shutil.rmtree(self.root / str(sid), ignore_errors=True)
                 self._written.pop(sid, None)
@@ -181,7 +177,8 @@ class Journal:
             carve = known[1]
         carve.append(reader.swept, reader.brick_version)
 
-    def _folders(self) -> list[Path]:
+    def folders(self) -> list[Path]:
+        """The journal's session folders (named by session id)."""
         if not self.root.is_dir():
             return []
         return [p for p in self.root.iterdir() if p.is_dir() and p.name.isdigit()]
@@ -213,7 +210,7 @@ def resume(plane: ControlPlane, journal: Journal, say: Callable[[str], None]) ->
     if not root.is_dir():
         return []
     resumed = []
-    for folder in sorted(journal._folders(), key=lambda p: int(p.name)):
+    for folder in sorted(journal.folders(), key=lambda p: int(p.name)):
         path = folder / SESSION_FILE
         try:
             age_days = (time.time() - path.stat().st_mtime) / 86400

@@ -315,3 +315,175 @@ class DeviceAttach(Strict):
         if not 0.5 <= n <= 1.5:
             raise ValueError(f"rotation must be a unit quaternion (norm {n:.3g})")
         return q
+
+
+# -- answers ------------------------------------------------------------------------------------
+#: A number as the server computed it: an int stays an int in the JSON (a float field would
+#: turn 1 into 1.0).
+Number = int | float
+
+
+class Answer(BaseModel):
+    """A response body: every key declared (a key the route adds but the model lacks fails
+    loudly instead of vanishing)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Progress(Answer):
+    stage: str = Field(description="reading, checking, replaying the journal, sharing, "
+                                   "starting")
+    done: int
+    total: int
+
+
+class JobView(Answer):
+    """A bone load: queued, running (with progress), done or failed (with why)."""
+
+    id: str
+    kind: str = Field(description="create, load, reset or restore")
+    session: int
+    source: str
+    state: Literal["queued", "running", "done", "failed"]
+    error: str | None
+    progress: Progress
+    created: float = Field(description="Unix time, s")
+    finished: float | None = Field(description="Unix time, s; null while it runs")
+
+
+class Endpoint(Answer):
+    host: str
+    port: int
+
+
+class SessionView(Answer):
+    """A session: its state, UDP endpoint, bone and what it renders."""
+
+    id: int
+    state: Literal["loading", "ready", "failed"]
+    error: str | None
+    job: str | None = Field(description="its latest bone load")
+    udp: Endpoint = Field(description="where its engine streams (its worker's endpoint)")
+    worker: int
+    authenticated: bool
+    source: str
+    bone: dict[str, Any] | None = Field(description="the loaded bone: name, format, shape, "
+                                                    "spacing_mm, origin_mm, generation, …")
+    frame: str
+    features: Features
+    output: str = Field(description="raw or coupled")
+    device: str | None
+    device_attached: bool
+    recording: str | None
+    created: float = Field(description="Unix time, s")
+
+
+class SessionCreated(SessionView):
+    """A new session, with its key (shown only here; null: unauthenticated)."""
+
+    key: str | None
+
+
+class MaterialView(Answer):
+    label: int
+    name: str
+    us_n_mm2: Number
+    k: Number
+    forbidden: bool
+
+
+class PhantomEntry(Answer):
+    source: str
+    description: str
+    default_voxel_mm: Number
+
+
+class Uploaded(Answer):
+    id: str
+    source: str
+    bytes: int
+    filename: str
+
+
+class UploadEntry(Answer):
+    id: str
+    source: str
+    file: str
+    bytes: int
+    created: float
+    in_use_by: list[int] = Field(description="sessions whose bone came from it")
+
+
+class SnapshotEntry(Answer):
+    name: str
+    source: str
+    bytes: int
+    created: float
+
+
+class SnapshotListed(SnapshotEntry):
+    in_use_by: list[int] = Field(description="sessions whose bone came from it")
+
+
+class RecordingEntry(Answer):
+    name: str
+    bytes: int
+    files: int
+    created: float
+    modified: float
+    complete: bool
+    recording_session: int | None
+    replay: str
+
+
+class Deleted(Answer):
+    deleted: str
+    kind: str
+    bytes: int
+    in_use_by: list[int]
+    note: str | None
+
+
+class KindUsage(Answer):
+    bytes: int
+    items: int
+    counted: bool
+    list: str | None = None
+
+
+class StorageReport(Answer):
+    data_dir: str
+    budget_bytes: int
+    used_bytes: int
+    reserved_bytes: int
+    free_bytes: int | None
+    disk_free_bytes: int | None
+    kinds: dict[str, KindUsage]
+
+
+class ParametersView(Answer):
+    """A session's parameters (``GET``/``PATCH /v1/sessions/ID/parameters``)."""
+
+    us_n_mm2: Number | None = Field(description="the primary material's Us, N/mm²")
+    k: Number | None = Field(description="the primary material's K")
+    primary_material: int | None
+    primary_material_name: str | None
+    fd_N: Number
+    g: Number
+    harmonic: Number
+    burr: dict[str, Any]
+    burr_calibrated: bool
+    burr_profile_mm: list[list[Number]] = Field(
+        description="the burr's generatrix, tip to top, as (ρ, z) mm in the tool frame")
+    radius_mm: Number
+    spin: str
+    min_cutting_rpm: Number
+    shaft_radius_mm: Number
+    shaft_length_mm: Number
+    shaft_stiffness_n_mm3: Number
+    frame: str
+    tool_axis: list[Number] | None
+    placement_position: list[Number]
+    placement_orientation: list[Number]
+    device: str | None
+    device_limits: dict[str, Any] | None

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
 from ..calib.design import ModelSetup, Sensitivities
 from ..calib.fit import FitError, FitOptions, calibrate, finite_or_none, summary_of
 from ..calib.table import CaseRow, CaseTableError, row_from_mapping
 from ..model.params import THESIS_K
-from .manager import ApiError
+from .deps import PlaneDep, SessionPath
+from .errors import Invalid
 from .models import CalibrationApply, FitRequest
-from .routes_sessions import SessionPath, _plane
 
 router = APIRouter(tags=["calibration"])
 
@@ -28,7 +28,7 @@ def run_fit(body: FitRequest, default_k: float = THESIS_K) -> dict:
         cal = calibrate(rows, options, Sensitivities(ModelSetup(spin=body.spin)))
         return finite_or_none(cal.as_dict())  # type: ignore[return-value]
     except (FitError, CaseTableError, ValueError) as exc:
-        raise ApiError(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
 
 
 @router.post("/calibration/fit")
@@ -40,18 +40,17 @@ def fit(body: FitRequest) -> dict:
 
 
 @router.post("/sessions/{session_id}/calibration")
-def apply_calibration(body: CalibrationApply, request: Request,
+def apply_calibration(body: CalibrationApply, plane: PlaneDep,
                       session_id: int = SessionPath) -> dict:
     """Set a session material's Us and K from a calibration: fit ``fit.cases`` here, or take
     ``us_n_mm2`` (and ``k``) fitted elsewhere. Applied between two packets, like a material
     PATCH; the material's previous values and the fit's summary are kept (GET)."""
-    plane = _plane(request)
     if (body.fit is None) == (body.us_n_mm2 is None):
-        raise ApiError(422, "give either fit (a case table to fit here) or us_n_mm2 (a value "
-                            "fitted elsewhere), not both or neither")
+        raise Invalid("give either fit (a case table to fit here) or us_n_mm2 (a value "
+                      "fitted elsewhere), not both or neither")
     if body.fit is not None and body.k is not None:
-        raise ApiError(422, "k goes inside fit (held fixed when fit.fit = 'us'); with a fit, "
-                            "the applied K is the fit's")
+        raise Invalid("k goes inside fit (held fixed when fit.fit = 'us'); with a fit, "
+                      "the applied K is the fit's")
     label, material = plane.calibration_target(session_id, body.label)
     if body.fit is None:
         return plane.apply_calibration(session_id, label, body.us_n_mm2, body.k, None,
@@ -63,11 +62,11 @@ def apply_calibration(body: CalibrationApply, request: Request,
 
 
 @router.get("/sessions/{session_id}/calibration")
-def get_calibration(request: Request, session_id: int = SessionPath) -> dict:
+def get_calibration(plane: PlaneDep, session_id: int = SessionPath) -> dict:
     """The calibrations applied to this session, by material label (latest per label), each
     with the material's values now and ``in_force``: false once the material was set another
     way (a PATCH, another calibration of its Us or K)."""
-    s = _plane(request).get(session_id)
+    s = plane.get(session_id)
     out = {}
     for label, record in sorted(s.calibrations.items()):
         now = s.materials[label] if s.materials is not None and label in s.materials else None

@@ -24,12 +24,28 @@ from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
 from ..record import RecordingError
 from ..report import report_from_recording
-from . import storage
+from .archive import TAR_MEDIA_TYPE
+from .deps import PlaneDep, SessionPath, wait_for
+from .errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
 from .generation import bone_generation
-from .manager import ApiError, ControlPlane
-from .models import MAX_BONE_VERSION, RecordingStart, RestoreRequest, SnapshotRequest
+from .models import (
+    MAX_BONE_VERSION,
+    Deleted,
+    JobView,
+    PhantomEntry,
+    RecordingEntry,
+    RecordingStart,
+    RestoreRequest,
+    SnapshotEntry,
+    SnapshotListed,
+    SnapshotRequest,
+    StorageReport,
+    Uploaded,
+    UploadEntry,
+)
 from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
-from .routes_sessions import SessionPath, _plane, wait_for
+from .sources import library_entries
+from .storage import over_budget
 
 router = APIRouter()
 UPLOAD_SUFFIX = re.compile(r"(\.bone\.npz|\.seg\.nrrd|\.nii\.gz|\.[A-Za-z0-9]{1,5})$")
@@ -45,7 +61,7 @@ VERSION_HEADER = "X-Burrforce-Bone-Version"
 DELETE_FORCE = ("delete it even though a session's bone came from it (the session keeps its "
                 "bone, but its reset, and resuming it after a crash or restart, will fail)")
 
-@router.get("/phantoms", tags=["bones"])
+@router.get("/phantoms", tags=["bones"], response_model=list[PhantomEntry])
 def phantoms() -> list[dict]:
     """Built-in bones: ``phantom:NAME`` sources."""
     return [{"source": f"phantom:{name}", "description": text,
@@ -53,35 +69,32 @@ def phantoms() -> list[dict]:
 
 
 @router.get("/library", tags=["bones"])
-def library(request: Request) -> list[dict]:
+def library(plane: PlaneDep) -> list[dict]:
     """Bone files and series folders in the configured library (``library:PATH`` sources)."""
-    from .sources import library_entries
-
-    return library_entries(_plane(request).roots.library)
+    return library_entries(plane.roots.library)
 
 
-@router.post("/uploads", status_code=201, tags=["bones"],
+@router.post("/uploads", status_code=201, tags=["bones"], response_model=Uploaded,
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/octet-stream": {"schema": {"type": "string",
                                                          "format": "binary"}}}}})
-async def upload(request: Request,
+async def upload(request: Request, plane: PlaneDep,
                  filename: str = Query(..., min_length=1, max_length=200,
                                        description="the file's name; its suffix tells the "
                                                    "format (.nrrd, .nii.gz, .npy, …)")) -> dict:
     """Upload one bone file as the raw request body (``curl --data-binary @ct.nrrd``). DICOM
     series and PNG stacks are folders: put them in the bone library instead. The answer's
     ``source`` loads it into a session."""
-    plane = _plane(request)
     match = UPLOAD_SUFFIX.search(FilePath(filename).name)
     if match is None:
-        raise ApiError(422, f"{filename!r} has no file suffix to tell its format")
+        raise Invalid(f"{filename!r} has no file suffix to tell its format")
     limit = plane.config.upload_max_bytes
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise ApiError(413, f"the upload is {int(declared):,} bytes; the limit is {limit:,} "
-                            "(serve's upload_max_mb)")
+        raise TooLarge(f"the upload is {int(declared):,} bytes; the limit is {limit:,} "
+                       "(serve's upload_max_mb)")
     # Walking the data directory takes a while with many recordings: not on the event loop.
-    usage = await run_in_threadpool(storage.require_room, plane, "the upload", 413,
+    usage = await run_in_threadpool(plane.storage.require_room, "the upload", TooLarge,
                                     int(declared) if declared and declared.isdigit() else 0)
     upload_id = secrets.token_hex(8)
     final = plane.roots.uploads / (upload_id + match.group(1).lower())
@@ -92,13 +105,13 @@ async def upload(request: Request,
             async for chunk in request.stream():
                 size += len(chunk)
                 if size > limit:
-                    raise ApiError(413, f"the upload exceeds the limit of {limit:,} bytes "
-                                        "(serve's upload_max_mb)")
+                    raise TooLarge(f"the upload exceeds the limit of {limit:,} bytes "
+                                   "(serve's upload_max_mb)")
                 if not usage.fits(size):
-                    raise storage.over_budget(usage, "the upload", 413, size)
+                    raise over_budget(usage, "the upload", TooLarge, size)
                 f.write(chunk)
         if size == 0:
-            raise ApiError(422, "the upload is empty")
+            raise Invalid("the upload is empty")
         os.replace(tmp, final)
     finally:
         FilePath(tmp).unlink(missing_ok=True)
@@ -109,46 +122,46 @@ async def upload(request: Request,
 UploadName = Path(description="the upload's id (``upload:ID`` without ``upload:``)")
 
 
-@router.get("/uploads", tags=["storage"])
-def uploads(request: Request) -> list[dict]:
+@router.get("/uploads", tags=["storage"], response_model=list[UploadEntry])
+def uploads(plane: PlaneDep) -> list[dict]:
     """Uploaded bone files: ``id``, ``source``, ``file``, ``bytes``, ``created`` (Unix s) and
     ``in_use_by`` (sessions whose bone came from it)."""
-    return storage.list_uploads(_plane(request))
+    return plane.storage.list_uploads()
 
 
 @router.get("/uploads/{name:path}", tags=["storage"], response_class=FileResponse)
-def download_upload(request: Request, name: str = UploadName) -> FileResponse:
+def download_upload(plane: PlaneDep, name: str = UploadName) -> FileResponse:
     """The uploaded file as it was sent."""
-    path = storage.upload_file(_plane(request), name)
+    path = plane.storage.upload_file(name)
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 
-@router.delete("/uploads/{name:path}", tags=["storage"])
-def delete_upload(request: Request, name: str = UploadName,
+@router.delete("/uploads/{name:path}", tags=["storage"], response_model=Deleted)
+def delete_upload(plane: PlaneDep, name: str = UploadName,
                   force: bool = Query(False, description=DELETE_FORCE)) -> dict:
     """Delete an upload; 409 while a bone load reads it, and while a session's bone came
     from it unless ``force`` (those sessions keep their bone; ``in_use_by`` and ``note``
     say which, and that their reset and resume after a restart will fail)."""
-    return storage.delete_upload(_plane(request), name, force)
+    return plane.storage.delete_upload(name, force)
 
 
-@router.get("/storage", tags=["storage"])
-def storage_usage(request: Request) -> dict:
+@router.get("/storage", tags=["storage"], response_model=StorageReport,
+             response_model_exclude_unset=True)
+def storage_usage(plane: PlaneDep) -> dict:
     """The data directory's usage: ``bytes`` and ``items`` per kind (uploads, snapshots,
     recordings, exports being served; the journal is shown but not ``counted``), the budget
     (``budget_bytes``, 0: none; serve's ``--data-budget``), ``used_bytes``, ``reserved_bytes``
     (room running recordings may still fill) and ``free_bytes``. A write that does not fit
     is refused: an upload with 413, a snapshot, export or recording start with 507."""
-    return storage.report(_plane(request))
+    return plane.storage.report()
 
 
-@router.get("/jobs/{job_id}", tags=["bones"])
-def job(request: Request, job_id: str = Path(pattern=r"^[0-9a-f]{16}$")) -> dict:
+@router.get("/jobs/{job_id}", tags=["bones"], response_model=JobView)
+def job(plane: PlaneDep, job_id: str = Path(pattern=r"^[0-9a-f]{16}$")) -> dict:
     """A bone load's state: queued, running (with progress), done or failed (with why)."""
-    plane = _plane(request)
     found = plane.jobs.get(job_id)
     if found is None:
-        raise ApiError(404, f"no job {job_id}")
+        raise NotFound(f"no job {job_id}")
     return found.public()
 
 
@@ -166,17 +179,9 @@ def _state_headers(generation: int | None, version: int) -> dict[str, str]:
     return out
 
 
-def _export_file(plane: ControlPlane, suffix: str) -> FilePath:
-    storage.require_room(plane, "an export")
-    fd, name = tempfile.mkstemp(prefix="export-", suffix=suffix,
-                                dir=plane.data_dir / "exports")
-    os.close(fd)
-    return FilePath(name)
-
-
 @router.get("/sessions/{session_id}/export/volume", tags=["exports"],
             response_class=FileResponse)
-def export_volume(request: Request, session_id: int = SessionPath,
+def export_volume(plane: PlaneDep, session_id: int = SessionPath,
                   format: Literal["nrrd", "npy", "bone"] = Query(
                       "nrrd", description="nrrd, npy (one array each), or bone: the whole "
                                           "bone as a burrforce .bone.npz (density, carving, "
@@ -192,32 +197,31 @@ def export_volume(request: Request, session_id: int = SessionPath,
     materials included. The headers X-Burrforce-Bone-Generation and -Version say which bone
     state it is (a client continues with deltas from them)."""
     if format == "bone" and what is not None:
-        raise ApiError(422, "format=bone holds every array (density, swept, labels): leave "
-                            "what out")
+        raise Invalid("format=bone holds every array (density, swept, labels): leave "
+                      "what out")
     what = what or "remaining"
-    plane = _plane(request)
     generation = bone_generation(plane.ready(session_id))  # before the bone: generation.py
     bone = plane.snapshot_bone(session_id)
     headers = _state_headers(generation, bone.grid.version)
     if format == "bone":
         media, suffix = BONE_MEDIA_TYPE
-        path = _export_file(plane, suffix)
+        path = plane.storage.export_file(suffix)
         save_bone(bone, path, generation=generation)
-        storage.check_written(plane, path, "the export")
+        plane.storage.check_written(path, "the export")
         return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}"
                                            f"{suffix}", headers)
     media, suffix = VOLUME_MEDIA_TYPES[format]
-    path = _export_file(plane, suffix)
+    path = plane.storage.export_file(suffix)
     with open(path, "wb") as f:
         write_volume(bone.grid, f, format, what, generation=generation)
-    storage.check_written(plane, path, "the export")
+    plane.storage.check_written(path, "the export")
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}-{what}"
                                        f"{suffix}", headers)
 
 
 @router.get("/sessions/{session_id}/export/mesh", tags=["exports"],
             response_class=FileResponse)
-def export_mesh(request: Request, session_id: int = SessionPath,
+def export_mesh(plane: PlaneDep, session_id: int = SessionPath,
                 format: Literal["stl", "ply", "obj"] = Query("stl"),
                 level: float = Query(0.5, gt=0.0, lt=1.0,
                                      description="iso-level of the bone fraction"),
@@ -225,23 +229,22 @@ def export_mesh(request: Request, session_id: int = SessionPath,
                 material: list[int] | None = Query(None, description="only these labels"),
                 ) -> FileResponse:
     """The carved bone's surface by marching cubes, in the bone's world frame (mm)."""
-    plane = _plane(request)
     bone = plane.snapshot_bone(session_id)
     try:
         mesh = surface_mesh(bone.grid, level=level, step=step, labels=material)
     except ValueError as exc:
-        raise ApiError(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     writer, media, suffix = MESH_FORMATS[format]
-    path = _export_file(plane, suffix)
+    path = plane.storage.export_file(suffix)
     with open(path, "wb") as f:
         writer(mesh, f)
-    storage.check_written(plane, path, "the export")
+    plane.storage.check_written(path, "the export")
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}{suffix}")
 
 
 @router.get("/sessions/{session_id}/deltas", tags=["exports"],
             responses={200: {"content": {DELTA_MEDIA_TYPE: {}}}})
-def deltas(request: Request, session_id: int = SessionPath,
+def deltas(plane: PlaneDep, session_id: int = SessionPath,
            since: int | None = Query(None, ge=0, le=MAX_BONE_VERSION,
                                      description="the bone version the client "
                                                              "has; omitted: every brick "
@@ -255,10 +258,9 @@ def deltas(request: Request, session_id: int = SessionPath,
     remaining density (msgpack; format in ``burrforce.server.bone.deltas``), so an engine can
     update its own mesh of the bone. A copy of another generation (the bone was reset,
     reloaded or restored) gets a full answer: clear the copy and start over."""
-    plane = _plane(request)
     session = plane.ready(session_id)
     if not session.features.deltas:
-        raise ApiError(409, "the session has deltas off")
+        raise Conflict("the session has deltas off")
     current = bone_generation(session)  # before the reader: generation.py
     reader = session.reader
     assert reader is not None
@@ -266,52 +268,55 @@ def deltas(request: Request, session_id: int = SessionPath,
         d = reader.read_published(lambda grid: brick_delta(grid, since, max_bricks, current,
                                                            generation))
     except ValueError as exc:
-        raise ApiError(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     except TimeoutError as exc:
-        raise ApiError(503, str(exc)) from None
+        raise Unavailable(str(exc)) from None
     return Response(encode_delta(d), media_type=DELTA_MEDIA_TYPE)
 
 
 # -- snapshots ------------------------------------------------------------------------------
-@router.post("/sessions/{session_id}/snapshot", status_code=201, tags=["snapshots"])
-def snapshot(request: Request, body: SnapshotRequest | None = None,
+@router.post("/sessions/{session_id}/snapshot", status_code=201, tags=["snapshots"],
+             response_model=SnapshotEntry)
+def snapshot(plane: PlaneDep, body: SnapshotRequest | None = None,
              session_id: int = SessionPath) -> dict:
     """Save the session's bone as it is now (``.bone.npz``, with what was carved); restore it
     into any session with ``snapshot:NAME``."""
-    return _plane(request).save_snapshot(session_id, body.name if body else None)
+    return plane.save_snapshot(session_id, body.name if body else None)
 
 
 SnapshotName = Path(description="the snapshot's name (``.bone.npz`` may be left off)")
 
 
-@router.get("/snapshots", tags=["snapshots", "storage"])
-def snapshots(request: Request) -> list[dict]:
+@router.get("/snapshots", tags=["snapshots", "storage"],
+            response_model=list[SnapshotListed])
+def snapshots(plane: PlaneDep) -> list[dict]:
     """Saved snapshots: ``name``, ``source``, ``bytes``, ``created`` (Unix s) and
     ``in_use_by`` (sessions whose bone came from it)."""
-    return storage.list_snapshots(_plane(request))
+    return plane.storage.list_snapshots()
 
 
 @router.get("/snapshots/{name:path}", tags=["snapshots", "storage"],
             response_class=FileResponse)
-def download_snapshot(request: Request, name: str = SnapshotName) -> FileResponse:
+def download_snapshot(plane: PlaneDep, name: str = SnapshotName) -> FileResponse:
     """The snapshot's ``.bone.npz`` file."""
-    path = storage.snapshot_file(_plane(request), name)
+    path = plane.storage.snapshot_file(name)
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 
-@router.delete("/snapshots/{name:path}", tags=["snapshots", "storage"])
-def delete_snapshot(request: Request, name: str = SnapshotName,
+@router.delete("/snapshots/{name:path}", tags=["snapshots", "storage"],
+               response_model=Deleted)
+def delete_snapshot(plane: PlaneDep, name: str = SnapshotName,
                     force: bool = Query(False, description=DELETE_FORCE)) -> dict:
     """Delete a snapshot; 409 while a restore or load reads it, and while a session's bone
     came from it unless ``force`` (as for uploads)."""
-    return storage.delete_snapshot(_plane(request), name, force)
+    return plane.storage.delete_snapshot(name, force)
 
 
-@router.post("/sessions/{session_id}/restore", status_code=202, tags=["snapshots"])
-def restore(body: RestoreRequest, request: Request, session_id: int = SessionPath,
+@router.post("/sessions/{session_id}/restore", status_code=202, tags=["snapshots"],
+             response_model=JobView)
+def restore(body: RestoreRequest, plane: PlaneDep, session_id: int = SessionPath,
             wait: bool = Query(True)) -> dict:
     """Load a snapshot into the session (its carving included)."""
-    plane = _plane(request)
     source = plane.resolve(f"snapshot:{body.snapshot}")
     job = plane.load_bone(session_id, source, "restore")
     wait_for(plane, job.id, wait)
@@ -320,42 +325,43 @@ def restore(body: RestoreRequest, request: Request, session_id: int = SessionPat
 
 # -- recordings -----------------------------------------------------------------------------
 @router.post("/sessions/{session_id}/recording", status_code=201, tags=["recordings"])
-def start_recording(request: Request, body: RecordingStart | None = None,
+def start_recording(plane: PlaneDep, body: RecordingStart | None = None,
                     session_id: int = SessionPath) -> dict:
     """Record the session's stream (poses, engine inputs, forces, removals) from now on;
     ``burrforce replay`` re-runs it offline."""
     body = body or RecordingStart()
-    return _plane(request).start_recording(session_id, body.name,
+    return plane.start_recording(session_id, body.name,
                                            int(body.max_mb * (1 << 20)))
 
 
 @router.get("/sessions/{session_id}/recording", tags=["recordings"])
-def recording_status(request: Request, session_id: int = SessionPath) -> dict:
-    status = _plane(request).recording_status(session_id)
+def recording_status(plane: PlaneDep, session_id: int = SessionPath) -> dict:
+    status = plane.recording_status(session_id)
     if status is None:
-        raise ApiError(404, f"session {session_id} is not recording")
+        raise NotFound(f"session {session_id} is not recording")
     return status
 
 
 @router.delete("/sessions/{session_id}/recording", tags=["recordings"])
-def stop_recording(request: Request, session_id: int = SessionPath) -> dict:
-    return _plane(request).stop_recording(session_id)
+def stop_recording(plane: PlaneDep, session_id: int = SessionPath) -> dict:
+    return plane.stop_recording(session_id)
 
 
 RecordingName = Path(description="the recording's name (``.burrrec`` may be left off)")
 
 
-@router.get("/recordings", tags=["recordings", "storage"])
-def recordings(request: Request) -> list[dict]:
+@router.get("/recordings", tags=["recordings", "storage"],
+            response_model=list[RecordingEntry])
+def recordings(plane: PlaneDep) -> list[dict]:
     """Recordings: ``name``, ``bytes``, ``files``, ``created``, ``modified`` (Unix s),
     ``complete`` (it has its summary), ``recording_session`` (the session writing it, or
     null) and the ``replay`` command."""
-    return storage.list_recordings(_plane(request))
+    return plane.storage.list_recordings()
 
 
 # Before the download route, whose ``{name:path}`` would take ``NAME/report`` as a name.
 @router.get("/recordings/{name}/report", tags=["recordings"], responses=REPORT_RESPONSES)
-def recording_report(request: Request, name: str = RecordingName,
+def recording_report(plane: PlaneDep, name: str = RecordingName,
                      format: Literal["json", "html"] = ReportFormat,
                      threshold_n: float = ReportThreshold) -> Response:
     """A session report of the recording: duration, time cutting, bone removed per material,
@@ -365,11 +371,11 @@ def recording_report(request: Request, name: str = RecordingName,
     10 s groove at 1 kHz: 2.5–3.3 s on a shared 2-core machine; other routes stay served).
     A recording still being written is reported as far as it goes (``complete`` false).
     404: no such recording; 422: a bad threshold, or a recording that cannot be replayed."""
-    path = storage.recording_dir(_plane(request), name)
+    path = plane.storage.recording_dir(name)
     try:
         report = report_from_recording(path, threshold_n)
     except RecordingError as exc:
-        raise ApiError(422, f"recording {path.name!r}: {exc.problem}") from None
+        raise Invalid(f"recording {path.name!r}: {exc.problem}") from None
     return report_response(report, format)
 
 
@@ -378,21 +384,22 @@ def recording_report(request: Request, name: str = RecordingName,
             responses={200: {"description": "the recording's directory as one uncompressed "
                                             "tar archive (members ``NAME.burrrec/...``; "
                                             "``tar xf`` it, then ``burrforce replay``)",
-                             "content": {storage.TAR_MEDIA_TYPE: {"schema": {
+                             "content": {TAR_MEDIA_TYPE: {"schema": {
                                  "type": "string", "format": "binary"}}}},
                        409: {"description": "a session is still writing it"}})
-def download_recording(request: Request, name: str = RecordingName) -> StreamingResponse:
+def download_recording(plane: PlaneDep, name: str = RecordingName) -> StreamingResponse:
     """A recording (a ``.burrrec`` directory) as one **tar** archive, streamed: its rows
     hardly compress, and a tar's length is known before it is sent. 409 while a session
     writes it: stop that recording first."""
-    archive = storage.recording_archive(_plane(request), name)
-    return StreamingResponse(archive.chunks(), media_type=storage.TAR_MEDIA_TYPE, headers={
+    archive = plane.storage.recording_archive(name)
+    return StreamingResponse(archive.chunks(), media_type=TAR_MEDIA_TYPE, headers={
         "Content-Length": str(archive.size_bytes),
         "Content-Disposition": f'attachment; filename="{archive.filename}"'})
 
 
-@router.delete("/recordings/{name:path}", tags=["recordings", "storage"])
-def delete_recording(request: Request, name: str = RecordingName) -> dict:
+@router.delete("/recordings/{name:path}", tags=["recordings", "storage"],
+               response_model=Deleted)
+def delete_recording(plane: PlaneDep, name: str = RecordingName) -> dict:
     """Delete a recording; 409 while a session writes it (stop it first with ``DELETE
     /v1/sessions/ID/recording``)."""
-    return storage.delete_recording(_plane(request), name)
+    return plane.storage.delete_recording(name)

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
 from ..devices.loop import DeviceLoopConfig
 from ..devices.mapping import WorkspaceMap, bone_top_centre
 from ..devices.registry import HAPTIC, PATH_OPTIONS, check_spec, format_spec, parse_spec
-from .manager import ApiError
+from .deps import PlaneDep, SessionPath
+from .errors import ApiError, Invalid
 from .models import DeviceAttach, Parameters
-from .routes_sessions import SessionPath, _plane
 
 router = APIRouter(tags=["devices"])
 
@@ -26,9 +26,9 @@ def confined(spec: str, data_dir: Path) -> str:
         if key in options:
             path = (root / str(options[key])).resolve()
             if not path.is_relative_to(root):
-                raise ApiError(422, f"{key}={options[key]!r}: over REST, files are named "
-                                    f"relative to the server's data directory ({root}) and "
-                                    "must stay inside it")
+                raise Invalid(f"{key}={options[key]!r}: over REST, files are named "
+                              f"relative to the server's data directory ({root}) and "
+                              "must stay inside it")
             options[key] = str(path)
     return format_spec(name, options)
 
@@ -44,7 +44,7 @@ def list_devices() -> list[dict]:
 
 
 @router.put("/sessions/{session_id}/device")
-def attach_device(request: Request, body: DeviceAttach,
+def attach_device(plane: PlaneDep, body: DeviceAttach,
                   session_id: int = SessionPath) -> dict:
     """Drive a local device from this session: a device loop (its own process) streams the
     device's pose into the session and renders the coupling model at the device's servo
@@ -53,7 +53,6 @@ def attach_device(request: Request, body: DeviceAttach,
     user homes a Falcon); 422 with the reason if the device cannot be opened here (not plugged
     in, no permission, a vendor library or the Falcon's firmware missing), 409 if the session
     already drives one."""
-    plane = _plane(request)
     session = plane.ready(session_id)
     try:
         device = confined(body.device, plane.data_dir)
@@ -62,7 +61,7 @@ def attach_device(request: Request, body: DeviceAttach,
         if actuator:
             check_spec(actuator, "actuator")
     except ValueError as exc:
-        raise ApiError(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     # The session renders the coupled output for the device's profile (unless it already has
     # a device profile) before the loop's first pose; undone if the device cannot be opened.
     profile = HAPTIC[name].profile_for(options)
@@ -84,7 +83,7 @@ def attach_device(request: Request, body: DeviceAttach,
             stale_s=body.stale_ms * 1e-3)
 
     try:
-        return plane.devices.attach(plane, session_id, make_config).status()
+        return plane.attach_device(session_id, make_config).status()
     except ApiError:
         if set_profile:
             plane.update_parameters(session_id, Parameters(device="none"))
@@ -92,16 +91,16 @@ def attach_device(request: Request, body: DeviceAttach,
 
 
 @router.get("/sessions/{session_id}/device")
-def device_status(request: Request, session_id: int = SessionPath) -> dict:
+def device_status(plane: PlaneDep, session_id: int = SessionPath) -> dict:
     """The device loop's state (starting, homing, running, stopped, failed), counters
     (cycles, overruns, saturations, watchdog trips, poses, replies), measured servo rate and
     period/round-trip percentiles, position, force, vibration, and its recent events."""
-    _plane(request).get(session_id)
-    return _plane(request).devices.get(session_id).status()
+    plane.get(session_id)
+    return plane.devices.get(session_id).status()
 
 
 @router.delete("/sessions/{session_id}/device")
-def detach_device(request: Request, session_id: int = SessionPath) -> dict:
+def detach_device(plane: PlaneDep, session_id: int = SessionPath) -> dict:
     """Stop the device loop (the device is sent zero force and released); returns its final
     status."""
-    return _plane(request).devices.detach(session_id)
+    return plane.devices.detach(session_id)

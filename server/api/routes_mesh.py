@@ -5,18 +5,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
 from dataclasses import dataclass
 from typing import Literal
 
-from fastapi import APIRouter, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from ...proto.mesh_chunks import FORMAT_VERSION, MEDIA_TYPE, encode
 from ..bone.chunks import CHUNK_BRICKS_DEFAULT, CHUNK_BRICKS_MAX
+from .deps import PlaneDep, SessionPath, get_plane
+from .errors import ApiError, Conflict, Invalid, Unavailable
 from .generation import bone_generation
-from .manager import ApiError, ControlPlane, ManagedSession
 from .mesh_pages import (
     MAX_BYTES_DEFAULT,
     MAX_BYTES_MAX,
@@ -25,7 +25,16 @@ from .mesh_pages import (
     mesh_page,
 )
 from .models import MAX_BONE_VERSION
-from .routes_sessions import SessionPath
+from .plane import ControlPlane
+from .push_sockets import (
+    accept,
+    admitted_session_id,
+    close_reason,
+    release_socket_slot,
+    take_socket_slot,
+    watch_disconnect,
+)
+from .sessions import ManagedSession
 
 router = APIRouter(tags=["exports"])
 #: Authenticates itself: a WebSocket client may not be able to set a header.
@@ -47,10 +56,6 @@ FormatQuery = Query(1, ge=1, le=FORMAT_VERSION,
                     description="the message format: 1, or 2 (with the bone generation)")
 
 
-def _plane(request: Request | WebSocket) -> ControlPlane:
-    return request.app.state.plane
-
-
 def _request(session: ManagedSession, chunk_bricks: int, frame: str,
              winding: str) -> MeshRequest:
     c = session.config
@@ -61,13 +66,13 @@ def _request(session: ManagedSession, chunk_bricks: int, frame: str,
 def _meshable(plane: ControlPlane, session_id: int) -> ManagedSession:
     session = plane.ready(session_id)
     if not session.features.deltas:
-        raise ApiError(409, "the session has deltas off (features.deltas): no mesh updates")
+        raise Conflict("the session has deltas off (features.deltas): no mesh updates")
     return session
 
 
 @router.get("/sessions/{session_id}/mesh", response_class=Response,
             responses={200: {"content": {MEDIA_TYPE: {}}}})
-def mesh(request: Request, session_id: int = SessionPath,
+def mesh(plane: PlaneDep, session_id: int = SessionPath,
          since: int | None = Query(None, ge=0, le=MAX_BONE_VERSION,
                                    description="the bone version your chunks "
                                                            "are at; omitted: every chunk"),
@@ -85,7 +90,7 @@ def mesh(request: Request, session_id: int = SessionPath,
     (the bone was reset, reloaded or restored) are all replaced: a FULL answer. The WebSocket
     ``/v1/sessions/{id}/mesh/ws`` (same query, plus ``interval_ms``; the token also as
     ``?token=``) pushes the same messages as the bone changes."""
-    session = _meshable(_plane(request), session_id)
+    session = _meshable(plane, session_id)
     req = _request(session, chunk_bricks, frame, winding)
     current = bone_generation(session)  # before the reader: generation.py
     if generation is not None and generation != current:
@@ -97,62 +102,10 @@ def mesh(request: Request, session_id: int = SessionPath,
         page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes,
                                                          stamp))
     except TimeoutError as exc:
-        raise ApiError(503, str(exc)) from None
+        raise Unavailable(str(exc)) from None
     except ValueError as exc:
-        raise ApiError(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     return Response(encode(page), media_type=MEDIA_TYPE)
-
-
-def _reason(text: str) -> str:
-    """A close reason fits in 123 bytes of UTF-8."""
-    return text.encode()[:120].decode(errors="ignore")
-
-
-#: The WebSocket subprotocol a browser offers with its token as ``bearer.TOKEN`` (a browser
-#: can set no header, and a token in the URL ends up in access logs).
-SUBPROTOCOL = "burrforce"
-_BEARER_PROTOCOL = "bearer."
-
-
-def _offered(ws: WebSocket) -> list[str]:
-    return [p.strip() for p in ws.headers.get("sec-websocket-protocol", "").split(",")
-            if p.strip()]
-
-
-async def accept(ws: WebSocket) -> None:
-    """Accept the handshake, choosing ``SUBPROTOCOL`` when the client offered it (a browser
-    fails a handshake that does not choose one of the subprotocols it offered)."""
-    await ws.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in _offered(ws) else None)
-
-
-async def admitted_session_id(ws: WebSocket, session_id: str, token: str | None) -> int | None:
-    """After the query was parsed: the token checked (4401) and the path's session id parsed
-    (4422), for every push WebSocket; the id, or None once the socket is closed."""
-    if not _authorized(ws, token):
-        await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
-                             "the subprotocol bearer.TOKEN, or ?token=TOKEN)")
-        return None
-    # isdecimal on ASCII only: isdigit would take "²", which int() refuses.
-    if not (session_id.isascii() and session_id.isdecimal()) or int(session_id) >= 1 << 32:
-        await ws.close(4422, _reason(f"session id must be an integer in 0..2^32-1, got "
-                                     f"{session_id!r}"))
-        return None
-    return int(session_id)
-
-
-def _authorized(ws: WebSocket, token: str | None) -> bool:
-    """The bearer token from the Authorization header, the ``bearer.TOKEN`` subprotocol or
-    ``?token=``."""
-    expected = ws.app.state.token.encode()
-    header = ws.headers.get("authorization", "")
-    offered = [p[len(_BEARER_PROTOCOL):] for p in _offered(ws) if p.startswith(_BEARER_PROTOCOL)]
-    if header[:7].lower() == "bearer ":
-        given = header[7:]
-    elif offered:
-        given = offered[0]
-    else:
-        given = token or ""
-    return hmac.compare_digest(given.encode(), expected)
 
 
 @dataclass(frozen=True)
@@ -203,42 +156,6 @@ class WsQuery:
 MAX_MESH_SOCKETS = 32
 
 
-async def take_socket_slot(ws: WebSocket, kind: str, limit: int) -> bool:
-    """Counts an accepted push WebSocket of ``kind`` against the server's ``limit``; at the
-    limit, closes it with 4503 and a reason and answers False. Give the slot back with
-    :func:`release_socket_slot`. No lock: one event loop runs every handler."""
-    state = ws.app.state
-    counts = getattr(state, "push_sockets", None)
-    if counts is None:
-        counts = state.push_sockets = {}
-    open_now = counts.get(kind, 0)
-    if open_now >= limit:
-        await ws.close(4503, _reason(f"{open_now} {kind} WebSockets are open, the server's "
-                                     f"limit ({limit}): close one"))
-        return False
-    counts[kind] = open_now + 1
-    return True
-
-
-def release_socket_slot(ws: WebSocket, kind: str) -> None:
-    ws.app.state.push_sockets[kind] -= 1
-
-
-def watch_disconnect(ws: WebSocket) -> tuple[asyncio.Event, asyncio.Task]:
-    """An event set when the client of a push-only WebSocket leaves, and the task that
-    watches for it (cancel it when done). The client sends nothing; a receive returns only
-    when it leaves (or the server shuts down, which uvicorn reports the same way)."""
-    gone = asyncio.Event()
-
-    async def watch() -> None:
-        with contextlib.suppress(WebSocketDisconnect, RuntimeError):
-            while (await ws.receive())["type"] != "websocket.disconnect":
-                pass
-        gone.set()
-
-    return gone, asyncio.create_task(watch())
-
-
 @ws_router.websocket("/sessions/{session_id}/mesh/ws")
 async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes mesh-chunk messages (proto/MESH.md): everything changed since ``since`` at
@@ -252,16 +169,16 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
     try:
         query = WsQuery.parse(ws.query_params)
     except ValueError as exc:
-        await ws.close(4422, _reason(str(exc)))
+        await ws.close(4422, close_reason(str(exc)))
         return
     sid = await admitted_session_id(ws, session_id, query.token)
     if sid is None:
         return
-    plane = _plane(ws)
+    plane = get_plane(ws)
     try:
         session = _meshable(plane, sid)
     except ApiError as exc:
-        await ws.close(4000 + exc.status, _reason(exc.detail))
+        await ws.close(4000 + exc.status, close_reason(exc.detail))
         return
     since, chunk_bricks, frame, winding = (query.since, query.chunk_bricks, query.frame,
                                            query.winding)
@@ -314,7 +231,7 @@ async def mesh_ws(ws: WebSocket, session_id: str) -> None:
         return  # the client left mid-send
     except ValueError as exc:  # a session setting the mesh cannot be made in
         with contextlib.suppress(RuntimeError):
-            await ws.close(4422, _reason(str(exc)))
+            await ws.close(4422, close_reason(str(exc)))
     except TimeoutError:  # the loop held a carving tick open: tell the client, let it retry
         with contextlib.suppress(RuntimeError):
             await ws.close(1013, "the bone was busy; reconnect")

@@ -15,17 +15,12 @@ from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import Response
 
 from ..report import SessionReport, report_from_live
-from .manager import ApiError, ControlPlane, ManagedSession
+from . import push_sockets
+from .deps import PlaneDep, SessionPath, get_plane
+from .errors import ApiError, Unavailable
+from .plane import ControlPlane
 from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
-from .routes_mesh import (
-    _reason,
-    accept,
-    admitted_session_id,
-    release_socket_slot,
-    take_socket_slot,
-    watch_disconnect,
-)
-from .routes_sessions import SessionPath
+from .sessions import ManagedSession
 from .supervisor import worker_state
 from .telemetry import TelemetrySample
 
@@ -46,16 +41,12 @@ MAX_TELEMETRY_SOCKETS = 32
 REPORT_MAX_EVENTS = 10_000
 
 
-def _plane(request: Request | WebSocket) -> ControlPlane:
-    return request.app.state.plane
-
-
 def loop_state(request: Request | WebSocket, session: ManagedSession) -> str:
     """The state of the hot loop serving ``session``, as /v1/health reports it
     (``supervisor.worker_state``; ``app.state.supervisor``)."""
     index = session.worker
     return worker_state(getattr(request.app.state, "supervisor", None),
-                        _plane(request).workers[index], index)
+                        get_plane(request).workers[index], index)
 
 
 def _sample(request: Request | WebSocket, plane: ControlPlane,
@@ -64,20 +55,20 @@ def _sample(request: Request | WebSocket, plane: ControlPlane,
     _require_telemetry(plane)
     sample = plane.telemetry.sample(session_id, loop=loop_state(request, session))
     if sample is None:
-        raise ApiError(503, f"session {session_id} has no telemetry yet (its hot loop is "
-                            "starting); try again")
+        raise Unavailable(f"session {session_id} has no telemetry yet (its hot loop is "
+                          "starting); try again")
     return sample
 
 
 def _require_telemetry(plane: ControlPlane) -> None:
     if not plane.telemetry.available:
-        raise ApiError(503, "no live telemetry on this server: it needs room in /dev/shm "
-                            "(the shared bones fell back to a disk folder; in docker, raise "
-                            "shm_size)")
+        raise Unavailable("no live telemetry on this server: it needs room in /dev/shm "
+                          "(the shared bones fell back to a disk folder; in docker, raise "
+                          "shm_size)")
 
 
 @router.get("/sessions/{session_id}/telemetry", tags=["sessions"])
-def telemetry(request: Request, session_id: int = SessionPath) -> dict:
+def telemetry(request: Request, plane: PlaneDep, session_id: int = SessionPath) -> dict:
     """The session's latest packet as the hot loop keeps it: pose (server frame, mm), the
     reply's force, components, vibration, status and bone version, the server's residence
     time (t_send − t_recv, µs: the client measures its own round trip from the echoed
@@ -86,7 +77,7 @@ def telemetry(request: Request, session_id: int = SessionPath) -> dict:
     supervisor's state of the session's hot loop: running, restarting, lost, down). Read
     from shared memory, not from the loop. The WebSocket
     ``/v1/sessions/{id}/telemetry/ws?hz=30`` pushes the same."""
-    return _sample(request, _plane(request), session_id).to_dict()
+    return _sample(request, plane, session_id).to_dict()
 
 
 def live_report(plane: ControlPlane, session_id: int, threshold_N: float) -> SessionReport:
@@ -104,7 +95,7 @@ def live_report(plane: ControlPlane, session_id: int, threshold_N: float) -> Ses
 
 
 @router.get("/sessions/{session_id}/report", tags=["sessions"], responses=REPORT_RESPONSES)
-def session_report(request: Request, session_id: int = SessionPath,
+def session_report(plane: PlaneDep, session_id: int = SessionPath,
                    format: Literal["json", "html"] = ReportFormat,
                    threshold_n: float = ReportThreshold) -> Response:
     """The live session's report, as a recording's (``GET /v1/recordings/NAME/report``):
@@ -120,7 +111,7 @@ def session_report(request: Request, session_id: int = SessionPath,
     engine's own, exact, counted since the hot loop or the bone was last (re)started. The
     report's ``notes`` say all of this. 404: no such session; 409: not ready; 422: a bad
     threshold; 503: no live telemetry on this server."""
-    report = live_report(_plane(request), session_id, threshold_n)
+    report = live_report(plane, session_id, threshold_n)
     return report_response(report, format)
 
 
@@ -145,33 +136,33 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     (``MAX_TELEMETRY_SOCKETS`` are open, or no live telemetry on this server), 1001 (the
     session was deleted)."""
     # Accepted first: a close before the handshake reaches the client as a bare HTTP 403.
-    await accept(ws)
+    await push_sockets.accept(ws)
     try:
         hz = _hz(ws.query_params.get("hz"))
     except ValueError as exc:
-        await ws.close(4422, _reason(str(exc)))
+        await ws.close(4422, push_sockets.close_reason(str(exc)))
         return
-    sid = await admitted_session_id(ws, session_id, ws.query_params.get("token"))
+    sid = await push_sockets.admitted_session_id(ws, session_id, ws.query_params.get("token"))
     if sid is None:
         return
-    plane = _plane(ws)
+    plane = get_plane(ws)
     try:
         session = plane.ready(sid)
         _require_telemetry(plane)
     except ApiError as exc:
-        await ws.close(4000 + exc.status, _reason(exc.detail))
+        await ws.close(4000 + exc.status, push_sockets.close_reason(exc.detail))
         return
-    if not await take_socket_slot(ws, "telemetry", MAX_TELEMETRY_SOCKETS):
+    if not await push_sockets.take_socket_slot(ws, "telemetry", MAX_TELEMETRY_SOCKETS):
         return
     try:
         await _push(ws, plane, session, sid, hz)
     finally:
-        release_socket_slot(ws, "telemetry")
+        push_sockets.release_socket_slot(ws, "telemetry")
 
 
 async def _push(ws: WebSocket, plane: ControlPlane, session: ManagedSession, sid: int,
                 hz: int) -> None:
-    gone, watcher = watch_disconnect(ws)
+    gone, watcher = push_sockets.watch_disconnect(ws)
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
     last_key = None

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from ..bone import PHANTOMS, Bone, load_bone, phantom
 from ..bone.loaders import BoneFileError, LoadOptions, Progress, detect_format
+from .errors import ApiError, BadName, Invalid, NotFound
 
 KINDS = ("ct", "labels", "density")
 #: Formats that say what their voxels are: DICOM is CT, .bone.npz is ours.
@@ -30,11 +31,15 @@ SNAPSHOT_SUFFIX = ".bone.npz"
 
 
 class SourceError(ValueError):
-    """A source that cannot be used: the message says why. ``status`` is the HTTP status."""
+    """A source that cannot be used: the message says why; ``error`` is the domain error it
+    is answered as (``errors``: Invalid, NotFound, BadName)."""
 
-    def __init__(self, message: str, status: int = 422) -> None:
+    def __init__(self, message: str, error: type[ApiError] = Invalid) -> None:
         super().__init__(message)
-        self.status = status
+        self.error = error
+
+    def as_api_error(self) -> ApiError:
+        return self.error(str(self))
 
 
 @dataclass(frozen=True)
@@ -79,7 +84,7 @@ def resolve(source: str, roots: SourceRoots, kind: str | None = None,
 
     Raises:
         SourceError: unknown scheme or phantom, a path outside its folder, a missing file
-            (404), or an ambiguous format without ``kind``.
+            (NotFound), or an ambiguous format without ``kind``.
     """
     if not isinstance(source, str) or ":" not in source:
         raise SourceError(f"bone source {source!r} must be phantom:NAME, library:PATH, "
@@ -90,7 +95,7 @@ def resolve(source: str, roots: SourceRoots, kind: str | None = None,
     if scheme == "phantom":
         if name not in PHANTOMS:
             raise SourceError(f"unknown phantom {name!r}; built in: {', '.join(PHANTOMS)}",
-                              404)
+                              NotFound)
         if kind is not None or spacing_mm is not None:
             raise SourceError("kind and spacing_mm are for files; a phantom takes voxel_mm")
         return BoneSource(source, voxel_mm=voxel_mm)
@@ -99,19 +104,19 @@ def resolve(source: str, roots: SourceRoots, kind: str | None = None,
                           "(spacing_mm sets it for npy and PNG files)")
     if scheme == "library":
         if roots.library is None:
-            raise SourceError("no bone library is configured (serve --bone-library DIR)", 404)
+            raise SourceError("no bone library is configured (serve --bone-library DIR)", NotFound)
         path = inside(roots.library, name)
     elif scheme == "upload":
         if not UPLOAD_ID.match(name):
-            raise SourceError(f"upload id {name!r} is not one this server issued", 404)
+            raise SourceError(f"upload id {name!r} is not one this server issued", NotFound)
         matches = sorted(roots.uploads.glob(name + ".*"))
         if not matches:
-            raise SourceError(f"no upload {name}", 404)
+            raise SourceError(f"no upload {name}", NotFound)
         path = matches[0]
     elif scheme == "snapshot":
         path = snapshot_path(roots.snapshots, name)
         if not path.is_file():
-            raise SourceError(f"no snapshot {name!r}", 404)
+            raise SourceError(f"no snapshot {name!r}", NotFound)
         return BoneSource(source, path)
     else:
         raise SourceError(f"unknown bone source scheme {scheme!r}: phantom, library, upload "
@@ -122,11 +127,11 @@ def resolve(source: str, roots: SourceRoots, kind: str | None = None,
 def file_source(source: str, path: Path, kind: str | None = None,
                 spacing_mm: tuple[float, float, float] | None = None) -> BoneSource:
     """A bone file or series folder as a source, once its format says what its voxels are or
-    ``kind`` does. Raises SourceError (404 for a missing file)."""
+    ``kind`` does. Raises SourceError (NotFound for a missing file)."""
     try:
         fmt = detect_format(path)
     except BoneFileError as exc:
-        raise SourceError(str(exc), 404 if not path.exists() else 422) from None
+        raise SourceError(str(exc), NotFound if not path.exists() else Invalid) from None
     if kind is None and fmt not in SELF_DESCRIBING:
         raise SourceError(f"{source} is a {fmt} file, whose voxels could be CT numbers, labels "
                           f"or densities: say which with kind ({', '.join(KINDS)})")
@@ -135,21 +140,21 @@ def file_source(source: str, path: Path, kind: str | None = None,
 
 def inside(root: Path, name: str) -> Path:
     """``root/name``, refusing anything that leaves ``root`` (``..``, absolute paths, symbolic
-    links pointing out). Raises SourceError (404 for a missing file)."""
+    links pointing out). Raises SourceError (NotFound for a missing file)."""
     if not name or name.startswith(("/", "\\")) or "\x00" in name:
-        raise SourceError(f"library path {name!r} must be relative to the library", 400)
+        raise SourceError(f"library path {name!r} must be relative to the library", BadName)
     base = root.resolve()
     path = (base / name).resolve()
     if path != base and base not in path.parents:
-        raise SourceError(f"library path {name!r} leaves the library", 400)
+        raise SourceError(f"library path {name!r} leaves the library", BadName)
     if not path.exists():
-        raise SourceError(f"no {name!r} in the bone library", 404)
+        raise SourceError(f"no {name!r} in the bone library", NotFound)
     return path
 
 
 def snapshot_path(root: Path, name: str) -> Path:
     if not SNAPSHOT_NAME.match(name) or ".." in name:
-        raise SourceError(f"snapshot name {name!r}: letters, digits, '_', '-', '.' only", 400)
+        raise SourceError(f"snapshot name {name!r}: letters, digits, '_', '-', '.' only", BadName)
     if not name.endswith(SNAPSHOT_SUFFIX):
         name += SNAPSHOT_SUFFIX
     return root / name

@@ -19,11 +19,13 @@ from ..hotloop import HotLoopProcess
 from .app import create_app
 from .config import ServeConfig
 from .journal import Journal, resume
-from .manager import ControlPlane, ManagedSession, start_hot_loops
 from .metrics import LoopStats, PoolStats
 from .models import Features, Parameters
+from .plane import ControlPlane
+from .sessions import ManagedSession
 from .sources import BoneSource
 from .supervisor import Supervisor
+from .workers import start_hot_loops
 
 START_TIMEOUT_S = 600.0
 log = logging.getLogger("burrforce.api")

@@ -1,11 +1,12 @@
 """Keeps the hot loops alive: a dead or wedged loop is reported, replaced and refilled.
 
-The hot loop is a process of its own (``hotloop.process``); it can be killed (OOM killer,
-``kill -9``, a crash in native code) or wedge (a tick that never ends). The supervisor watches
-its exit status and its heartbeat; when either fails it says so (console, log, health,
-metrics), kills what is left, starts a new loop on the same UDP port and puts every session
-back with its id, key, parameters and carved bone (``ControlPlane.rebuild``). Engines see
-their stream refused once (WRONG_STREAM), say hello again and go on with the same key.
+The hot loop is a process of its own (``hotloop.handle``, its main in ``hotloop.child``); it
+can be killed (OOM killer, ``kill -9``, a crash in native code) or wedge (a tick that never
+ends). The supervisor watches its exit status and its heartbeat; when either fails it says so
+(console, log, health, metrics), kills what is left, starts a new loop on the same UDP port and
+puts every session back with its id, key, parameters and carved bone
+(``ControlPlane.rebuild``). Engines see their stream refused once (WRONG_STREAM), say hello
+again and go on with the same key.
 
 With a pool (``serve --workers``) each worker is watched and replaced on its own: a crash of
 worker 2 rebuilds worker 2's sessions on worker 2's port and touches no other. One warm spare
@@ -29,8 +30,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from ..hotloop import HotLoopProcess
 from .daemon import start_daemon, stop_daemon
-from .manager import ControlPlane
 from .metrics import LoopStats
+from .plane import ControlPlane
 
 log = logging.getLogger("burrforce.supervisor")
 

@@ -490,7 +490,7 @@ def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | Non
 def _session_traffic(plane, session_id: int) -> int | None:
     """The datagrams session ``session_id`` has taken so far (POSEs and hellos), or None
     while it cannot say (its bone being replaced)."""
-    from ..api.manager import ApiError
+    from ..api.errors import ApiError
 
     try:
         state = plane.session_state(session_id, max_events=0)
@@ -522,7 +522,7 @@ def _demo_groove(conn_path: Path, done: threading.Event, x_mm: float, y_mm: floa
 def _start_device(say, plane, session, args: argparse.Namespace) -> None:
     """Attach ``--haptic-device`` to the default session (raises with the reason if it
     cannot be opened)."""
-    from ..api.manager import ApiError
+    from ..api.errors import ApiError
 
     def make_config(s, host: str, port: int):
         c = s.config
@@ -531,7 +531,7 @@ def _start_device(say, plane, session, args: argparse.Namespace) -> None:
 
     say(f"opening {args.haptic_device}...")
     try:
-        process = plane.devices.attach(plane, session.id, make_config)
+        process = plane.attach_device(session.id, make_config)
     except ApiError as exc:
         raise RuntimeError(f"--haptic-device {args.haptic_device}: {exc.detail}") from None
     # The loop says what it opened once it has; the console shows the rest as it comes.

@@ -1,0 +1,75 @@
+"""The server's own folders: its run directory of shared bones (made at start, removed at stop,
+and those of killed servers cleaned up), and where the session journal lives in the data
+directory.
+
+A run directory (``bone.shared.run_directory``: in ``/dev/shm``, or the temporary directory)
+holds the shared bones and the telemetry files of one server; ``OWNER_FILE`` in it names the
+process that owns it, so a server started after one killed with SIGKILL can tell a dead
+server's directory from a live one's.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+from pathlib import Path
+
+from ..bone.shared import run_directory
+
+#: The file in a shared-bone directory naming the process that owns it.
+OWNER_FILE = "owner.pid"
+RUN_DIR_NAME = re.compile(r"burrforce-[a-z0-9_]{8}")
+
+
+def journal_dir(data_dir: Path) -> Path:
+    """Where the session journal (``journal``) keeps one folder per session."""
+    return Path(data_dir).expanduser() / "journal" / "sessions"
+
+
+class RunDirectory:
+    """This server's run directory: made (with its owner file) when constructed, after the
+    stale ones of dead servers beside it were removed; :meth:`remove` at stop."""
+
+    def __init__(self) -> None:
+        self.path = run_directory(0)
+        (self.path / OWNER_FILE).write_text(f"{os.getpid()}\n")
+        remove_stale_run_directories(self.path.parent, keep=self.path)
+
+    def remove(self) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+def remove_stale_run_directories(base: Path, keep: Path) -> list[Path]:
+    """Remove the shared-bone directories that servers killed with SIGKILL left in ``base``
+    (``/dev/shm``, or the temporary directory): those whose owner process is gone, and
+    empty ones without an owner (older servers). Returns what was removed."""
+    removed = []
+    for d in base.glob("burrforce-*"):
+        # Only tempfile.mkdtemp's names (run_directory): not a bench's temporary folder.
+        if d == keep or not d.is_dir() or not RUN_DIR_NAME.fullmatch(d.name):
+            continue
+        try:
+            pid = int((d / OWNER_FILE).read_text())
+        except (OSError, ValueError):
+            pid = None
+            try:
+                if any(d.iterdir()):
+                    continue  # not ours to judge
+            except OSError:
+                continue
+        if pid is not None and _alive(pid):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # somebody else's live process
+        return True
+    return True

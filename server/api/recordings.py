@@ -1,0 +1,88 @@
+"""Recording a session's stream: started, queried and stopped here, written by its hot loop.
+
+A recording starts from a snapshot of the session's bone (``record.format.SNAPSHOT_NAME``) in
+a new ``.burrrec`` folder of the data directory; the loop then appends the poses, engine
+inputs, forces and removals, capped by the data budget's room (``Storage.recording_cap``) so
+it stops cleanly at the budget. Raises the domain errors of ``errors``.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+from ..bone.loaders import save_bone
+from ..record.format import SNAPSHOT_NAME
+from .errors import Conflict
+from .sessions import ManagedSession
+from .storage import Storage
+from .workers import WorkerPool
+
+
+class Recordings:
+    """Starts and stops the sessions' recordings (the state is each session's
+    ``recording``)."""
+
+    def __init__(self, pool: WorkerPool, storage: Storage) -> None:
+        self.pool = pool
+        self.storage = storage
+
+    def start(self, session: ManagedSession, name: str | None, max_bytes: int) -> dict:
+        """Record ``session`` (ready) from now on into recording ``name`` (None: one named
+        after the session and the time), at most ``max_bytes`` of chunks.
+
+        Raises:
+            Conflict: the session records already, or the recording exists.
+            NoRoom: the data budget is full.
+            Unavailable: the loop cannot start it.
+        """
+        with session.lock:
+            if session.recording is not None:
+                raise Conflict(f"session {session.id} is already recording "
+                               f"({session.recording['name']})")
+            bone = session.snapshot_bone()
+            name = name or f"session-{session.id}-{time.strftime('%Y%m%d-%H%M%S')}"
+            path = self.storage.new_recording_dir(name)
+            try:
+                save_bone(bone, path / SNAPSHOT_NAME)
+                # Capped by the budget's room left, so it stops cleanly at the budget.
+                max_bytes = self.storage.recording_cap(max_bytes)
+                result = self.pool.call("start_recording", session_id=session.id,
+                                        path=str(path), snapshot_version=bone.grid.version,
+                                        bone_name=session.source.source,
+                                        max_bytes=max_bytes)
+            except Exception:
+                shutil.rmtree(path, ignore_errors=True)
+                raise
+            session.recording = {"name": path.name, "path": str(path),
+                                 "max_bytes": max_bytes, **result}  # type: ignore[dict-item]
+            return session.recording
+
+    def status(self, session: ManagedSession) -> dict | None:
+        """The running recording's state (None: the session does not record)."""
+        if session.recording is None:
+            return None
+        status = self.pool.call("recording_status", session_id=session.id)
+        return {**session.recording, **(status or {})}  # type: ignore[dict-item]
+
+    def stop(self, session: ManagedSession) -> dict:
+        """Stop the session's recording; Conflict if it does not record."""
+        with session.lock:
+            if session.recording is None:
+                raise Conflict(f"session {session.id} is not recording")
+            return self.end(session) or {}
+
+    def end(self, session: ManagedSession) -> dict | None:
+        """Stop the session's recording if it has one (a bone swap, a delete, the server's
+        stop), whatever the loop says; its final state, or None. Call with the session's
+        lock held."""
+        if session.recording is None:
+            return None
+        info = session.recording
+        session.recording = None
+        try:
+            status = self.pool.workers[session.worker].call("stop_recording",
+                                                            session_id=session.id)
+        except RuntimeError as exc:
+            status = {"error": str(exc)}
+        return {**info, **(status or {})}
