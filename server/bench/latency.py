@@ -208,11 +208,11 @@ class StreamClient:
             if self.session is None:
                 self.sock.send(self.echo_payload)
             else:
-                self.sock.send(self._datagram(t0 // 1000, i == 0))
+                self.sock.send(self.datagram(t0 // 1000, i == 0))
             try:
                 data = self.sock.recv(2048)
                 t1 = clock()  # the arrival: decoding the reply is the client's own time
-                while self.session is not None and not self._is_reply(data):
+                while self.session is not None and not self.is_reply(data):
                     data = self.sock.recv(2048)
                     t1 = clock()
             except TimeoutError:
@@ -222,7 +222,7 @@ class StreamClient:
             if self.cut is not None:
                 self.cutting.append(bool(decode_server_message(data).status & STATUS_CUTTING))
 
-    def _datagram(self, t_us: int, new_chunk: bool) -> bytes:
+    def datagram(self, t_us: int, new_chunk: bool) -> bytes:
         seq = self.seq
         self.seq += 1
         flags = 0
@@ -236,7 +236,7 @@ class StreamClient:
         return encode_pose(Pose(self.session, seq, t_us, position, orientation, RPM, True,  # type: ignore[arg-type]
                                 None, flags, self.stream), self.tagger)
 
-    def _is_reply(self, data: bytes) -> bool:
+    def is_reply(self, data: bytes) -> bool:
         """The reply to the packet just sent (a late one from a timed-out packet is not)."""
         return decode_server_message(data).seq == self.seq - 1
 

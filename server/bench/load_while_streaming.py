@@ -75,11 +75,11 @@ def stream(host: str, port: int, key: bytes, seconds: float, rate_hz: float,
         while time.perf_counter() < due:
             pass
         t0 = clock()
-        client.sock.send(client._datagram(t0 // 1000, i == 0))
+        client.sock.send(client.datagram(t0 // 1000, i == 0))
         rtt = float("nan")
         try:
             data = client.sock.recv(2048)
-            while not client._is_reply(data):
+            while not client.is_reply(data):
                 data = client.sock.recv(2048)
             rtt = (clock() - t0) / 1e3
         except OSError:  # lost (a timeout), or the loop is gone
