@@ -56,7 +56,7 @@ hot_inline = njit(**_OPTIONS, inline="always")
 # variable, that a variable of a hook inlined inside another inlined helper "is not in
 # scope": its own renaming, not a fault of the kernel (the ticks are bit-identical to the
 # hand-written kernels they replace). Shown, the notes would fill a first compile's output.
-warnings.filterwarnings("ignore", message=r"variable '.*' is not in scope",
+warnings.filterwarnings("ignore", message=r".*variable '.*' is not in scope",
                         category=NumbaIRAssumptionWarning)
 
 

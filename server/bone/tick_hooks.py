@@ -16,8 +16,9 @@ from typing import NamedTuple
 import numpy as np
 
 from ..hot_kernel import hot_hook, hot_inline
-from .carve import carve_sphere
-from .carve_revolved import GEO_Z_TOP, carve_revolved, fill_geometry
+from .carve import carve_voxels
+from .carve_hooks import RevolvedCarve, SphereCarve
+from .carve_revolved import GEO_Z_TOP, fill_geometry
 from .cutters import is_shape, no_shape
 from .force import cut_voxels, patch_half_sides
 from .force_revolved import cut_voxels_revolved
@@ -92,8 +93,8 @@ def clear(values, n_values):
 def carve_stage(burr, density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
                 brick_forbidden, spacing, centre, axis, carve, version_next, removed, touch,
                 touched, cache, tick):
-    """Sweep what the burr covers (``carve.carve_sphere``, ``carve_revolved.carve_revolved``,
-    same arguments); returns True if bone was removed."""
+    """Sweep what the burr covers (``carve.carve_voxels``); returns True if bone was
+    removed."""
 
 
 @hot_hook(carve_stage)
@@ -104,20 +105,20 @@ def _carve_stage(burr, density, swept, labels, forbidden, brick_bone, brick_full
         def sphere(burr, density, swept, labels, forbidden, brick_bone, brick_full,
                    brick_version, brick_forbidden, spacing, centre, axis, carve, version_next,
                    removed, touch, touched, cache, tick):
-            return carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full,
-                                brick_version, brick_forbidden, spacing, centre, burr.previous,
-                                burr.radius, carve, version_next, removed, touch, touched,
-                                cache, tick)
+            return carve_voxels(SphereCarve(burr.radius, burr.previous), density, swept,
+                                labels, forbidden, brick_bone, brick_full, brick_version,
+                                brick_forbidden, spacing, centre, carve, version_next, removed,
+                                touch, touched, cache, tick)
         return sphere
     if is_shape(burr, RevolvedTick):
         def revolved(burr, density, swept, labels, forbidden, brick_bone, brick_full,
                      brick_version, brick_forbidden, spacing, centre, axis, carve, version_next,
                      removed, touch, touched, cache, tick):
             fill_geometry(burr.geo, axis, burr.bounds, spacing)
-            return carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full,
-                                  brick_version, brick_forbidden, spacing, centre, burr.profile,
-                                  burr.geo, carve, version_next, removed, touch, touched, cache,
-                                  burr.rows, tick)
+            return carve_voxels(RevolvedCarve(burr.profile, burr.geo, burr.rows), density,
+                                swept, labels, forbidden, brick_bone, brick_full, brick_version,
+                                brick_forbidden, spacing, centre, carve, version_next, removed,
+                                touch, touched, cache, tick)
         return revolved
     return no_shape(burr)
 
