@@ -342,7 +342,7 @@ def test_the_tick_follows_replaced_materials_and_path():
     engine.set_materials(harder)
     assert engine.step(*step, carve=False).cut.force_N == pytest.approx(2.0 * before, rel=1e-12)
     # Only the new table's arrays were typed again; the specialization is the same.
-    assert engine._bound.entry is entry and engine._bound.fixed[18] is harder.us
+    assert engine._bound.entry is entry and engine._bound.fixed[4] is harder.us
     # A path that knows no cut: the groove's walls in front count as bone again.
     spacing = engine.grid.spacing_mm
     engine.path = BurrPath((-0.5 * spacing, (np.asarray(engine.grid.shape) - 0.5) * spacing),

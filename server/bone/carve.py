@@ -24,7 +24,7 @@ from .carve_hooks import (
     slab_reach,
     voxel_coverage,
 )
-from .voxels import cache_origin
+from .voxels import cache_origin, spacing_and_point
 
 # Layout of the float64 contact vector the carving kernel fills (length N_TOUCH).
 TOUCH_FORBIDDEN = 0  # forbidden voxels holding bone that the burr overlaps
@@ -67,12 +67,7 @@ def carve_voxels(cutter, density, swept, labels, forbidden, brick_bone, brick_fu
         touch[n] = 0.0
     for n in range(touched.shape[0]):
         touched[n, 0] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     i_lo, i_hi, j_lo, j_hi, k_lo, k_hi, frame = carve_frame(cutter, density.shape, hx, hy, hz,
                                                             cx, cy, cz, carve)
     any_removed = False

@@ -60,6 +60,56 @@ class RevolvedCarve(NamedTuple):
     rows: np.ndarray
 
 
+class SphereFrame(NamedTuple):
+    """The sphere's constants for one carve: 1/hz (1/mm); the squared radii between which a
+    voxel is partly covered (``voxels.sphere_reach``) and the force's reach, squared (mm²);
+    the half-space of points no farther from the last carving position than from the centre
+    (``has_prev``; q = centre − previous, mm; q0 = q·their midpoint, mm²; 1/(q_z·hz), or 0
+    where that underflows); that position (mm) and its inner radius², shrunk against rounding
+    (mm²); the grid's voxels along k."""
+
+    inv_hz: float
+    r_in2: float
+    r_out2: float
+    near2: float
+    has_prev: bool
+    qx: float
+    qy: float
+    qz: float
+    q0: float
+    inv_qzh: float
+    px: float
+    py: float
+    pz: float
+    r_in2_prev: float
+    nz: int
+
+
+class RevolvedFrame(NamedTuple):
+    """Any other shape's constants for one carve: the cylinder about its axis that holds it,
+    widened by half a voxel's diagonal (mm), the force's reach beyond that axis (mm), and the
+    solid's ball, squared, to which its rows are cut (mm²)."""
+
+    r_out: float
+    near: float
+    ball2: float
+
+
+class BrickState(NamedTuple):
+    """What the sphere's slab and row hooks need of a brick: whether its last position's
+    half-space may skip voxels there (never in a brick holding a forbidden label), whether the
+    brick lies wholly inside the sphere's inner radius, and its squared gap from the centre
+    along k (mm²). Unused (False, False, 0) for other shapes."""
+
+    skip_old: bool
+    inside: bool
+    ez2: float
+
+
+#: A brick the slab and row hooks will not read.
+_NO_BRICK = BrickState(False, False, 0.0)
+
+
 @hot_kernel
 def interval_gap(c, lo, hi):
     """Distance from c to the interval [lo, hi] along one axis."""
@@ -108,8 +158,8 @@ def _carve_frame(cutter, shape, hx, hy, hz, cx, cy, cz, carve):
             px = previous[0] if has_prev else 0.0
             py = previous[1] if has_prev else 0.0
             pz = previous[2] if has_prev else 0.0
-            frame = (1.0 / hz, r_in2, r_out2, near * near, has_prev, qx, qy, qz, q0, inv_qzh,
-                     px, py, pz, r_in2 * (1.0 - 1e-9), nz)
+            frame = SphereFrame(1.0 / hz, r_in2, r_out2, near * near, has_prev, qx, qy, qz, q0,
+                                inv_qzh, px, py, pz, r_in2 * (1.0 - 1e-9), nz)
             return i_lo, i_hi, j_lo, j_hi, k_lo, k_hi, frame
         return sphere
     if is_shape(cutter, RevolvedCarve):
@@ -135,7 +185,7 @@ def _carve_frame(cutter, shape, hx, hy, hz, cx, cy, cz, carve):
             # Rows are cut to the solid's ball too (``revolved_coverage``'s first reject): for
             # a round burr the cylinder about its axis holds half as much again as the ball.
             ball = geo[GEO_R_BALL] + half_diag + BALL_SLACK_VOXELS * min(hx, min(hy, hz))
-            return i_lo, i_hi, j_lo, j_hi, k_lo, k_hi, (r_out, near, ball * ball)
+            return i_lo, i_hi, j_lo, j_hi, k_lo, k_hi, RevolvedFrame(r_out, near, ball * ball)
         return revolved
     return no_shape(cutter)
 
@@ -168,27 +218,23 @@ def _brick_reach(cutter, frame, ex, ey, fx, fy, a0, a1, b0, b1, c0, c1, hx, hy, 
     if is_shape(cutter, SphereCarve):
         def sphere(cutter, frame, ex, ey, fx, fy, a0, a1, b0, b1, c0, c1, hx, hy, hz, cx, cy,
                    cz, forbidden_here):
-            r_in2 = frame[1]
-            r_out2 = frame[2]
-            has_prev = frame[4]
-            qx = frame[5]
-            qy = frame[6]
-            qz = frame[7]
-            q0 = frame[8]
+            qx = frame.qx
+            qy = frame.qy
+            qz = frame.qz
             ez = interval_gap(cz, c0 * hz, c1 * hz)
             ez2 = ez * ez
             gap2 = ex * ex + ey * ey + ez2
-            if gap2 >= frame[3]:
-                return BRICK_FAR, (False, False, 0.0)
-            if gap2 >= r_out2:
-                return BRICK_NEAR, (False, False, 0.0)
-            skip_old = has_prev and forbidden_here == 0
+            if gap2 >= frame.near2:
+                return BRICK_FAR, _NO_BRICK
+            if gap2 >= frame.r_out2:
+                return BRICK_NEAR, _NO_BRICK
+            skip_old = frame.has_prev and forbidden_here == 0
             if skip_old and (max(qx * a0 * hx, qx * a1 * hx) + max(qy * b0 * hy, qy * b1 * hy)
-                             + max(qz * c0 * hz, qz * c1 * hz)) <= q0:
-                return BRICK_NEAR, (False, False, 0.0)
+                             + max(qz * c0 * hz, qz * c1 * hz)) <= frame.q0:
+                return BRICK_NEAR, _NO_BRICK
             fz = max(abs(cz - c0 * hz), abs(cz - c1 * hz))
-            inside = fx * fx + fy * fy + fz * fz <= r_in2
-            return BRICK_CARVE, (skip_old, inside, ez2)
+            inside = fx * fx + fy * fy + fz * fz <= frame.r_in2
+            return BRICK_CARVE, BrickState(skip_old, inside, ez2)
         return sphere
     if is_shape(cutter, RevolvedCarve):
         def revolved(cutter, frame, ex, ey, fx, fy, a0, a1, b0, b1, c0, c1, hx, hy, hz, cx, cy,
@@ -200,11 +246,11 @@ def _brick_reach(cutter, frame, ex, ey, fx, fy, a0, a1, b0, b1, c0, c1, hx, hy, 
             brick_half = 0.5 * math.sqrt(((a1 - a0) * hx) ** 2 + ((b1 - b0) * hy) ** 2
                                          + ((c1 - c0) * hz) ** 2)
             gap = axis_gap(mx, my, mz, cx, cy, cz, cutter.geo) - brick_half
-            if gap >= frame[1]:
-                return BRICK_FAR, (False, False, 0.0)
-            if gap >= frame[0]:
-                return BRICK_NEAR, (False, False, 0.0)
-            return BRICK_CARVE, (False, False, 0.0)
+            if gap >= frame.near:
+                return BRICK_FAR, _NO_BRICK
+            if gap >= frame.r_out:
+                return BRICK_NEAR, _NO_BRICK
+            return BRICK_CARVE, _NO_BRICK
         return revolved
     return no_shape(cutter)
 
@@ -218,16 +264,16 @@ def slab_reach(cutter, frame, brick, i, b0, b1, c0, c1, ey, hx, hy, hz, cx):
 def _slab_reach(cutter, frame, brick, i, b0, b1, c0, c1, ey, hx, hy, hz, cx):
     if is_shape(cutter, SphereCarve):
         def sphere(cutter, frame, brick, i, b0, b1, c0, c1, ey, hx, hy, hz, cx):
-            qx = frame[5]
-            qy = frame[6]
-            qz = frame[7]
+            qx = frame.qx
+            qy = frame.qy
+            qz = frame.qz
             # A slab of rows wholly closer to ``previous`` is skipped at once, not row by row
             # (the brick test already drops most of them).
-            if brick[0] and (qx * i * hx + max(qy * b0 * hy, qy * b1 * hy)
-                             + max(qz * c0 * hz, qz * c1 * hz)) <= frame[8]:
+            if brick.skip_old and (qx * i * hx + max(qy * b0 * hy, qy * b1 * hy)
+                                   + max(qz * c0 * hz, qz * c1 * hz)) <= frame.q0:
                 return False, 0.0
             dx = i * hx - cx
-            if dx * dx + ey * ey + brick[2] >= frame[2]:
+            if dx * dx + ey * ey + brick.ez2 >= frame.r_out2:
                 return False, dx  # the slab's rows all pass beside the burr in this brick
             return True, dx
         return sphere
@@ -249,24 +295,18 @@ def _row_span(cutter, frame, brick, i, j, dx, dy, c0, c1, k_lo, k_hi, o0, o1, ti
     if is_shape(cutter, SphereCarve):
         def sphere(cutter, frame, brick, i, j, dx, dy, c0, c1, k_lo, k_hi, o0, o1, tick, hx,
                    hy, hz, cz):
-            inv_hz = frame[0]
-            r_out2 = frame[2]
-            qx = frame[5]
-            qy = frame[6]
-            qz = frame[7]
-            q0 = frame[8]
-            inv_qzh = frame[9]
-            skip_old = brick[0]
-            ez2 = brick[2]
+            qz = frame.qz
+            inv_qzh = frame.inv_qzh
+            skip_old = brick.skip_old
             k_from = c0
             k_to = c1
             if skip_old:
                 # Keep only k with q_row + qz·k·hz > 0 (closer to the centre), before the
                 # row's square root: rows wholly behind cost nothing.
-                q_row = qx * i * hx + qy * j * hy - q0
+                q_row = frame.qx * i * hx + frame.qy * j * hy - frame.q0
                 # Where the half-space crosses the row, clamped to the grid: a step almost
                 # level in z puts it far away, beyond what converts to an int.
-                k_cut = min(max(-q_row * inv_qzh, -1.0), float(frame[14]))
+                k_cut = min(max(-q_row * inv_qzh, -1.0), float(frame.nz))
                 if inv_qzh > 0.0:
                     k_from = max(k_from, math.floor(k_cut) + 1)
                 elif inv_qzh < 0.0:
@@ -275,20 +315,21 @@ def _row_span(cutter, frame, brick, i, j, dx, dy, c0, c1, k_lo, k_hi, o0, o1, ti
                     return 1, 0
                 if k_from > k_to:
                     return 1, 0
-            rest = r_out2 - dx * dx - dy * dy
-            if rest <= ez2:
+            rest = frame.r_out2 - dx * dx - dy * dy
+            if rest <= brick.ez2:
                 # The row's chord of the burr ends short of this brick's part of the row
                 # (most rows near the burr's rim, in a cut's bone bricks).
                 return 1, 0
             reach_z = math.sqrt(rest)
-            k_first = max(k_from, math.ceil((cz - reach_z) * inv_hz))
-            k_last = min(k_to, math.floor((cz + reach_z) * inv_hz))
+            k_first = max(k_from, math.ceil((cz - reach_z) * frame.inv_hz))
+            k_last = min(k_to, math.floor((cz + reach_z) * frame.inv_hz))
             if skip_old:
                 # Both ends inside ``previous``'s inner sphere: so is the whole row (convex),
                 # which that carve swept through. Its run of 255 is skipped unread.
-                rest_in = frame[13] - (i * hx - frame[10]) ** 2 - (j * hy - frame[11]) ** 2
-                if ((k_first * hz - frame[12]) ** 2 < rest_in
-                        and (k_last * hz - frame[12]) ** 2 < rest_in):
+                rest_in = (frame.r_in2_prev - (i * hx - frame.px) ** 2
+                           - (j * hy - frame.py) ** 2)
+                if ((k_first * hz - frame.pz) ** 2 < rest_in
+                        and (k_last * hz - frame.pz) ** 2 < rest_in):
                     return 1, 0
             return k_first, k_last
         return sphere
@@ -296,7 +337,7 @@ def _row_span(cutter, frame, brick, i, j, dx, dy, c0, c1, k_lo, k_hi, o0, o1, ti
         def revolved(cutter, frame, brick, i, j, dx, dy, c0, c1, k_lo, k_hi, o0, o1, tick, hx,
                      hy, hz, cz):
             k_first, k_last = cached_row_reach(cutter.rows, o0, o1, tick, i, j, dx, dy, cz, hz,
-                                               cutter.geo, frame[0], frame[2], k_lo, k_hi)
+                                               cutter.geo, frame.r_out, frame.ball2, k_lo, k_hi)
             return max(k_first, c0), min(k_last, c1)
         return revolved
     return no_shape(cutter)
@@ -314,9 +355,9 @@ def _voxel_coverage(cutter, frame, brick, cache, o0, o1, o2, tick, i, j, k, dx, 
     if is_shape(cutter, SphereCarve):
         def sphere(cutter, frame, brick, cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, hx, hy,
                    hz):
-            return 255 if brick[1] else cached_coverage(
+            return 255 if brick.inside else cached_coverage(
                 cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, cutter.radius, hx, hy, hz,
-                frame[1], frame[2])
+                frame.r_in2, frame.r_out2)
         return sphere
     if is_shape(cutter, RevolvedCarve):
         def revolved(cutter, frame, brick, cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, hx, hy,

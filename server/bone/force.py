@@ -14,10 +14,17 @@ from __future__ import annotations
 import math
 
 from ..hot_kernel import hot_inline, hot_kernel
-from ..model.kernels import N_ACC, N_OUT, accumulate_forces, finish, tool_basis
+from ..model.kernels import (
+    N_ACC,
+    N_OUT,
+    accumulate_forces,
+    finish,
+    in_tool_frame,
+    tool_basis,
+)
 from .cutters import SphereReach
 from .sampling import sample_bone
-from .voxels import cache_origin, sphere_reach, stencils_inside
+from .voxels import cache_origin, spacing_and_point, sphere_reach, stencils_inside
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
 #: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
@@ -66,17 +73,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
         acc[n] = 0.0
     for n in range(N_OUT):
         out[n] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     basis = tool_basis(axis[0], axis[1], axis[2])
     e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = basis
-    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
-    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
-    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    v1, v2, v3 = in_tool_frame(v_feed, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
     feed_speed = math.sqrt(v1 * v1 + v2 * v2 + v3 * v3)
     has_cut = cutting and has_feed

@@ -17,14 +17,14 @@ import math
 import numpy as np
 
 from ..hot_kernel import hot_inline, hot_kernel
-from ..model.kernels import N_ACC, N_OUT, finish
+from ..model.kernels import N_ACC, N_OUT, finish, in_tool_frame
 from ..model.kernels_revolved import accumulate_forces_revolved
 from ..model.revolved import RevolvedGrid
 from ..model.shapes import Burr
 from .cutters import RevolvedReach
 from .force import PENDING, mark_needed, settle_fine
 from .sampling import sample_bone
-from .voxels import cache_origin
+from .voxels import cache_origin, spacing_and_point
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
 #: Tighter than the sphere's 0.25 (``force.SMOOTH_SPREAD``): an end disc or a rim meets the
@@ -125,18 +125,11 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
         acc[n] = 0.0
     for n in range(N_OUT):
         out[n] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     e1x, e1y, e1z = geo[0], geo[1], geo[2]
     e2x, e2y, e2z = geo[3], geo[4], geo[5]
     e3x, e3y, e3z = geo[6], geo[7], geo[8]
-    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
-    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
-    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    v1, v2, v3 = in_tool_frame(v_feed, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
     sample_all = not (cutting and has_feed)  # contact needs every element
     abs_omega = abs(omega)

@@ -14,6 +14,13 @@ from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
 
 
+@hot_inline
+def spacing_and_point(spacing, point):
+    """(hx, hy, hz, px, py, pz): a voxel's sides (``spacing``, (3,) mm) and a point ((3,),
+    grid frame, mm) as scalars, the way every kernel over the voxels starts."""
+    return spacing[0], spacing[1], spacing[2], point[0], point[1], point[2]
+
+
 @hot_kernel
 def sphere_reach(radius, hx, hy, hz):
     """Squared radii (inner, outer) between which a voxel is partly covered by a sphere.
