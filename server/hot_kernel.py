@@ -25,8 +25,11 @@ inline nor call cheaply. Measured: 180 ns per call, for each of the ~550 corners
 from __future__ import annotations
 
 import functools
+import warnings
 
-from numba import njit
+from numba import njit, types
+from numba.core.errors import NumbaIRAssumptionWarning
+from numba.extending import overload
 
 
 def _without_reference_counting() -> dict[str, bool]:
@@ -49,6 +52,24 @@ hot_kernel = njit(**_OPTIONS)
 hot_inline = njit(**_OPTIONS, inline="always")
 
 
+# numba's inliner of overloads checks its own work pedantically and warns, once per inlined
+# variable, that a variable of a hook inlined inside another inlined helper "is not in
+# scope": its own renaming, not a fault of the kernel (the ticks are bit-identical to the
+# hand-written kernels they replace). Shown, the notes would fill a first compile's output.
+warnings.filterwarnings("ignore", message=r".*variable '.*' is not in scope",
+                        category=NumbaIRAssumptionWarning)
+
+
+def hot_hook(stub):
+    """Decorate the typing function of a shape hook (``bone.cutters``): an overload of
+    ``stub`` whose implementation the typing function picks by its arguments' types, inlined
+    into the calling kernel at numba's IR level as ``hot_inline`` is (the kernel's own
+    options then apply to it). Hooks must be defined at module level, where numba's cache
+    finds them again."""
+    options = {k: v for k, v in _OPTIONS.items() if k != "cache"}
+    return overload(stub, inline="always", jit_options=options)
+
+
 class DirectCall:
     """One hot kernel bound to the arguments its caller passes unchanged every call (its
     buffers and tables, the same objects each time), called without numba's dispatch.
@@ -69,7 +90,8 @@ class DirectCall:
         previous: the binding this one replaces, if any: only the arguments that are not the
             very objects it bound are typed again (numba types in Python, ~7 µs an argument:
             binding all 50 of the bone tick's took ~0.35 ms, a stall in the tick after a
-            parameter change), and its specialization is kept if the types are the same.
+            parameter change), and its specialization is kept if the types are the same. A
+            tuple (the burr's tables) is typed again item by item, the same way.
     """
 
     def __init__(self, kernel, fixed: tuple, example_tail: tuple, owners: tuple = (),
@@ -79,7 +101,7 @@ class DirectCall:
                       and len(previous.signature) == len(fixed) + len(example_tail))
         if same_shape:
             old = previous.signature
-            signature = tuple(old[n] if a is previous.fixed[n] else kernel.typeof_pyval(a)
+            signature = tuple(_retyped(kernel, a, previous.fixed[n], old[n])
                               for n, a in enumerate(fixed)) + old[len(fixed):]
         else:
             signature = tuple(kernel.typeof_pyval(a) for a in (*fixed, *example_tail))
@@ -92,3 +114,17 @@ class DirectCall:
         self.call = functools.partial(entry, *fixed)
         self.fixed = fixed
         self.owners = owners
+
+
+def _retyped(kernel, value, old_value, old_type):
+    """numba's type of ``value``, an argument that replaces ``old_value`` (of ``old_type``):
+    the old type if it is the very object; for a tuple of the same class and length, the
+    old items' types where the items are the very objects (``DirectCall``)."""
+    if value is old_value:
+        return old_type
+    if (isinstance(value, tuple) and type(value) is type(old_value)
+            and len(value) == len(old_value) and isinstance(old_type, types.BaseTuple)):
+        items = tuple(old_type.types[n] if v is old_value[n] else kernel.typeof_pyval(v)
+                      for n, v in enumerate(value))
+        return types.BaseTuple.from_types(items, type(value))
+    return kernel.typeof_pyval(value)

@@ -293,7 +293,8 @@ def test_a_step_of_almost_nothing_along_z_carves_as_from_scratch(dx, dz):
     assert 0 <= diff.min() and diff.max() <= 1 and np.count_nonzero(diff) <= 8
 
 
-#: A burr of revolution: every burr but the round abrasive one carves with ``carve_revolved``.
+#: A burr of revolution: every burr but the round abrasive one carves with its profile
+#: (``carve_hooks.RevolvedCarve``).
 BARREL = Burr(Barrel(1.5, 1.0, 4.0))
 
 

@@ -286,7 +286,9 @@ def test_step_rejects_bad_flags_and_times():
 def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
     """Fine corners copied from a uniform coarse cell instead of sampled must hold what a
     sample there would give."""
-    from burrforce.server.bone.voxels import sample_bone, sphere_reach
+    from burrforce.server.bone.cutters import SphereReach
+    from burrforce.server.bone.sampling import sample_bone
+    from burrforce.server.bone.voxels import sphere_reach
     from burrforce.server.model.kernels import tool_basis
 
     case = CuttingCase(orientation, 60.0)
@@ -315,10 +317,10 @@ def test_two_level_corner_sampling_matches_sampling_every_corner(orientation):
             s1 = 0.5 * radius * b.d_theta / b.refine * (ct * cp * e[0] + ct * sp * e[1]
                                                          - st * e[2])
             s2 = 0.5 * radius * b.d_phi / b.refine * st * (cp * e[1] - sp * e[0])
-            frac = sample_bone(g.density, g.swept, g.labels, engine.materials.us,
+            reach = SphereReach(radius, r_in2, r_out2, engine.path.candidates)
+            frac = sample_bone(reach, g.density, g.swept, g.labels, engine.materials.us,
                                engine.materials.usk, g.brick_bone, p[0], p[1], p[2], *h, *c,
-                               radius, r_in2, r_out2, cache, *o, engine._stamp,
-                               engine.path.candidates, tuple(s1), tuple(s2), False)[0]
+                               cache, *o, engine._stamp, tuple(s1), tuple(s2), False)[0]
             if vert[j, k, 0] == 0.0 and frac != 0.0:
                 continue  # an unneeded corner (no facing element): not sampled at all
             in_bone += frac > 0.0
@@ -340,7 +342,7 @@ def test_the_tick_follows_replaced_materials_and_path():
     engine.set_materials(harder)
     assert engine.step(*step, carve=False).cut.force_N == pytest.approx(2.0 * before, rel=1e-12)
     # Only the new table's arrays were typed again; the specialization is the same.
-    assert engine._bound.entry is entry and engine._bound.fixed[18] is harder.us
+    assert engine._bound.entry is entry and engine._bound.fixed[4] is harder.us
     # A path that knows no cut: the groove's walls in front count as bone again.
     spacing = engine.grid.spacing_mm
     engine.path = BurrPath((-0.5 * spacing, (np.asarray(engine.grid.shape) - 0.5) * spacing),

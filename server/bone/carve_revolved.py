@@ -1,10 +1,12 @@
-"""Carving with a burr of any shape (a solid of revolution): partial-volume coverage of voxels.
+"""How much of a voxel a burr of any shape (a solid of revolution) covers, and where it reaches.
 
 Each voxel's covered share comes from its signed distance to the solid, taken in the tool
 frame (ρ, z) against the exact profile segments (``revolved.RevolvedGrid.segments``), with the
 voxel's half-extents projected on the distance's gradient (``voxels.plane_fraction``): the
-sphere's rule (``voxels.sphere_coverage``) for any profile. Same outputs and bookkeeping as
-``carve.carve_sphere``.
+sphere's rule (``voxels.sphere_coverage``) for any profile. The one carve
+(``carve.carve_voxels``) walks such a burr's rows with ``cached_row_reach`` and covers with
+``cached_revolved_coverage`` (``carve_hooks.RevolvedCarve``); the bone sampler reads the same
+coverage back (``cutters.RevolvedReach``).
 """
 
 from __future__ import annotations
@@ -16,9 +18,7 @@ import numpy as np
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
 from ..model.shapes import Arc, Burr
-from .bricks import BRICK, BRICK_SHIFT
-from .carve import N_TOUCH, TOUCH_BRICKS, TOUCH_NEAR_BONE, TOUCH_VISITED, apply_coverage
-from .voxels import CACHE_SHIFT, cache_origin, plane_fraction, voxel_span
+from .voxels import CACHE_SHIFT, plane_fraction
 
 # Layout of the float64 per-tick geometry vector (``fill_geometry``), length N_GEO.
 GEO_E1 = 0  # [0:3] tool basis e1, grid frame
@@ -337,111 +337,3 @@ def cached_row_reach(rows, o0, o1, tick, i, j, dx, dy, cz, hz, geo, r_out, ball2
         rows[a, b, 2] = last
         return first, last
     return row_reach(dx, dy, cz, hz, geo, r_out, ball2, k_lo, k_hi)
-
-
-@hot_kernel
-def carve_revolved(density, swept, labels, forbidden, brick_bone, brick_full, brick_version,
-                   brick_forbidden, spacing, centre, profile, geo, carve, version_next,
-                   removed, touch, touched, cache, rows, tick):
-    """Sweep the voxels a burr of revolution covers (one call per tick).
-
-    As ``carve.carve_sphere`` (same arguments, outputs and units), with the burr given by its
-    ``profile`` (``profile_table``) and this tick's ``geo``
-    (``fill_geometry``); ``centre`` is the reference centre. Every voxel within reach is
-    examined (no skipping by the last position: a sphere's half-space argument does not hold
-    for other solids); voxels already swept through cost one byte read. ``rows``: int64
-    (n0, n1, 3), the coverage cache's first two dimensions: each row's reach along k
-    (``row_reach``), computed once per tick rather than once per brick the row crosses.
-
-    Returns:
-        True if any bone was removed.
-    """
-    for n in range(N_TOUCH):
-        touch[n] = 0.0
-    for n in range(touched.shape[0]):
-        touched[n, 0] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
-    nx, ny, nz = density.shape
-    ax = geo[6]
-    ay = geo[7]
-    az = geo[8]
-    half_diag = geo[GEO_HALF_DIAG]
-    r_out = geo[GEO_RHO_MAX] + half_diag
-    # Bone within a stencil of the coverage switches the force stage on (as carve_sphere).
-    near = r_out + max(hx, max(hy, hz))
-    z_tip = geo[GEO_Z_TIP]
-    z_top = geo[GEO_Z_TOP]
-    # The voxels of the capsule about the axis segment, radius ``near``: it holds the solid.
-    i_lo, i_hi = voxel_span(min(cx + z_tip * ax, cx + z_top * ax) - near,
-                            max(cx + z_tip * ax, cx + z_top * ax) + near, hx, nx)
-    j_lo, j_hi = voxel_span(min(cy + z_tip * ay, cy + z_top * ay) - near,
-                            max(cy + z_tip * ay, cy + z_top * ay) + near, hy, ny)
-    k_lo, k_hi = voxel_span(min(cz + z_tip * az, cz + z_top * az) - near,
-                            max(cz + z_tip * az, cz + z_top * az) + near, hz, nz)
-    # Rows are cut to the solid's ball too (``revolved_coverage``'s first reject): for a round
-    # burr the cylinder about its axis holds half as much again as the ball.
-    ball = geo[GEO_R_BALL] + half_diag + BALL_SLACK_VOXELS * min(hx, min(hy, hz))
-    ball2 = ball * ball
-    any_removed = False
-    visited = 0
-    o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
-    for bi in range(i_lo >> BRICK_SHIFT, (i_hi >> BRICK_SHIFT) + 1):
-        a0 = max(bi * BRICK, i_lo)
-        a1 = min(bi * BRICK + BRICK - 1, i_hi)
-        for bj in range(j_lo >> BRICK_SHIFT, (j_hi >> BRICK_SHIFT) + 1):
-            b0 = max(bj * BRICK, j_lo)
-            b1 = min(bj * BRICK + BRICK - 1, j_hi)
-            for bk in range(k_lo >> BRICK_SHIFT, (k_hi >> BRICK_SHIFT) + 1):
-                if brick_bone[bi, bj, bk] == 0:
-                    continue
-                c0 = max(bk * BRICK, k_lo)
-                c1 = min(bk * BRICK + BRICK - 1, k_hi)
-                # The brick's part in range, as its bounding sphere.
-                mx = 0.5 * (a0 + a1) * hx
-                my = 0.5 * (b0 + b1) * hy
-                mz = 0.5 * (c0 + c1) * hz
-                brick_half = 0.5 * math.sqrt(((a1 - a0) * hx) ** 2 + ((b1 - b0) * hy) ** 2
-                                             + ((c1 - c0) * hz) ** 2)
-                gap = axis_gap(mx, my, mz, cx, cy, cz, geo) - brick_half
-                if gap >= near:
-                    continue
-                touch[TOUCH_NEAR_BONE] = 1.0
-                if gap >= r_out:
-                    continue
-                brick_changed = False
-                for i in range(a0, a1 + 1):
-                    dx = i * hx - cx
-                    for j in range(b0, b1 + 1):
-                        dy = j * hy - cy
-                        k_first, k_last = cached_row_reach(rows, o0, o1, tick, i, j, dx, dy,
-                                                           cz, hz, geo, r_out, ball2, k_lo,
-                                                           k_hi)
-                        k_first = max(k_first, c0)
-                        k_last = min(k_last, c1)
-                        for k in range(k_first, k_last + 1):
-                            # Unsigned: numba then omits the negative-index wraparound, 3 of the
-                            # 12 instructions a swept-through voxel costs (thousands a tick).
-                            old = swept[i, j, np.uint64(k)]
-                            if old == 255:
-                                continue  # swept through: nothing left to take or touch
-                            visited += 1
-                            cq = cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx,
-                                                          dy, k * hz - cz, profile, geo, hx,
-                                                          hy, hz)
-                            if cq == 0:
-                                continue
-                            if apply_coverage(density, swept, labels, forbidden, removed, touch,
-                                              touched, brick_full, brick_bone, bi, bj, bk, i, j,
-                                              k, hx, hy, hz, old, cq, carve):
-                                brick_changed = True
-                if brick_changed:
-                    brick_version[bi, bj, bk] = version_next
-                    touch[TOUCH_BRICKS] += 1.0
-                    any_removed = True
-    touch[TOUCH_VISITED] = visited
-    return any_removed

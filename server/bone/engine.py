@@ -38,7 +38,7 @@ from .materials import N_LABELS, MaterialTable
 from .seqlock import header_address, read_version, write_begin, write_end
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from .tick import bone_tick, removed_mm3
-from .tick_revolved import bone_tick_revolved
+from .tick_hooks import RevolvedTick, SphereTick
 from .voxels import coverage_cache_shape
 
 #: Elements the bone's surface crosses are integrated on refine × refine sub-elements. With
@@ -193,9 +193,9 @@ class BoneEngine:
     evaluates the model's force from the voxels, and checks the shaft. Per-material Us and K
     come from ``materials``; ``params`` supplies the burr radius, spin direction and minimum
     cutting speed (its own ``us_n_mm2``/``k`` are not used: materials own them), and the
-    burr's shape (``params.shape``; :meth:`set_burr` changes it between ticks). A round
-    abrasive burr runs ``tick.bone_tick``; any other runs ``tick_revolved.bone_tick_revolved``
-    on a ``RevolvedGrid`` with about as many elements as the sphere's grid.
+    burr's shape (``params.shape``; :meth:`set_burr` changes it between ticks). Every burr
+    runs ``tick.bone_tick``: the round abrasive one on its ``BurrGrid``, any other on a
+    ``RevolvedGrid`` (``tick_hooks.RevolvedTick``) with about as many elements.
 
     Args:
         grid: the bone (carved in place).
@@ -409,28 +409,24 @@ class BoneEngine:
         # version: readers of the shared bone would otherwise wait on an odd counter for good,
         # and bricks it changed would be missing from deltas since the old version.
         try:
-            rv = self._revolved
-            if rv is not None:
-                removed = self._tick_revolved(rv, centre_g, axis_g, feed_g, omega, cutting, carve)
-            else:
-                bound = self._bound
-                if bound is None:
-                    bound = self._bind_tick()
-                # As _owners(), compared by identity, not by value; spelled out because a
-                # loop over the pairs costs about 1 µs a tick.
-                o = bound.owners
-                if (o[0] is not b or o[1] is not p or o[2] is not self.shaft
-                        or o[3] is not m or o[4] is not self._brick_forbidden
-                        or o[5] is not self.path):
-                    bound = self._bind_tick()
-                if (centre_g.dtype is _F64 and axis_g.dtype is _F64 and feed_g.dtype is _F64
-                        and centre_g.strides == _VEC_STRIDES and axis_g.strides == _VEC_STRIDES
-                        and feed_g.strides == _VEC_STRIDES):
-                    removed = bound.call(centre_g, axis_g, feed_g, omega, cutting, carve,
-                                         g.version + 1, self._stamp)
-                else:  # not the bound types: numba's dispatch (and a compile) sorts it out
-                    removed = bone_tick(*bound.fixed, centre_g, axis_g, feed_g, omega, cutting,
-                                        carve, g.version + 1, self._stamp)
+            bound = self._bound
+            if bound is None:
+                bound = self._bind_tick()
+            # As _owners(), compared by identity, not by value; spelled out because a loop
+            # over the pairs costs about 1 µs a tick.
+            o = bound.owners
+            if (o[0] is not b or o[1] is not p or o[2] is not self.shaft or o[3] is not m
+                    or o[4] is not self._brick_forbidden or o[5] is not self.path
+                    or o[6] is not self._revolved or o[7] is not self._rows):
+                bound = self._bind_tick()
+            if (centre_g.dtype is _F64 and axis_g.dtype is _F64 and feed_g.dtype is _F64
+                    and centre_g.strides == _VEC_STRIDES and axis_g.strides == _VEC_STRIDES
+                    and feed_g.strides == _VEC_STRIDES):
+                removed = bound.call(centre_g, axis_g, feed_g, omega, cutting, carve,
+                                     g.version + 1, self._stamp)
+            else:  # not the bound types: numba's dispatch (and a compile) sorts it out
+                removed = bone_tick(*bound.fixed, centre_g, axis_g, feed_g, omega, cutting,
+                                    carve, g.version + 1, self._stamp)
             if removed:
                 g.version += 1
         except BaseException:
@@ -446,49 +442,49 @@ class BoneEngine:
     def _owners(self) -> tuple:
         """The objects the bound tick's fixed arguments come from (``_bind_tick``)."""
         return (self.burr, self._params, self.shaft, self.materials, self._brick_forbidden,
-                self.path)
+                self.path, self._revolved, self._rows)
 
     def _bind_tick(self) -> DirectCall:
-        """Bind the round burr's tick to this engine's tables and buffers (``DirectCall``):
-        again whenever one of the objects they come from is replaced (the burr grid, the
-        params and their coverage cache, the shaft, the materials, the forbidden bricks, the
-        path). The grid's arrays are bound for the engine's life: write into them, never
-        rebind them."""
-        b = self.burr
-        g = self.grid
-        p = self._params
-        m = self.materials
-        path = self.path
-        fixed = (b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta, b.d_phi,
-                 b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p, b.cos_theta_v,
-                 b.sin_theta_v, b.cos_phi_v, b.sin_phi_v, p.radius_mm, g.density, g.swept,
-                 g.labels, m.us, m.usk, m.forbidden, g.brick_bone, g.brick_full,
-                 g.brick_version, self._brick_forbidden, g.spacing_mm, self._previous,
-                 self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
-                 self._removed_tick, self._removed_total, self.touch, self._touched, self._vert,
-                 self._acc, self.out, self.shaft_out, self._cache, path.ring, path.meta,
-                 path.candidates)
+        """Bind the tick to this engine's tables and buffers (``DirectCall``), for the round
+        abrasive burr or any other alike: again whenever one of the objects they come from is
+        replaced (the burr grid, the params and their coverage cache, the shaft, the
+        materials, the forbidden bricks, the path, the other burr's tables and its carve's
+        row table). The grid's arrays
+        are bound for the engine's life: write into them, never rebind them."""
+        fixed = self._tick_fixed(self._revolved)
         # The tail's types: what step_raw checks before each direct call.
         tail = (np.zeros(3), np.zeros(3), np.zeros(3), 0.0, True, True, 0, 0)
         bound = DirectCall(bone_tick, fixed, tail, self._owners(), previous=self._bound)
         self._bound = bound
         return bound
 
-    def _tick_revolved(self, rv: RevolvedTables, centre_g: np.ndarray, axis_g: np.ndarray,
-                       feed_g: np.ndarray, omega: float, cutting: bool, carve: bool) -> bool:
-        """``bone_tick_revolved`` with this engine's buffers (see :meth:`step_raw`)."""
-        r = rv.grid
+    def _tick_fixed(self, rv: RevolvedTables | None) -> tuple:
+        """``bone_tick``'s arguments up to ``centre``: the round burr's tables
+        (``SphereTick``) if ``rv`` is None, else ``rv``'s (``RevolvedTick``), then the
+        bone's, materials', shaft's and this engine's buffers."""
         g = self.grid
-        return bone_tick_revolved(
-            r.elem, r.ds, r.sub, r.ds_sub, r.cos_phi, r.sin_phi, r.d_phi, r.cos_sub_p,
-            r.sin_sub_p, rv.corners, rv.cos_pv, rv.sin_pv, rv.profile, rv.bounds, rv.geo,
-            centre_g, axis_g, feed_g, omega, cutting, carve, rv.normal_ratio, rv.edge_ratio,
-            rv.material_k, g.density, g.swept, g.labels, self.materials.us,
-            self.materials.usk, self.materials.forbidden, g.brick_bone, g.brick_full,
-            g.brick_version, self._brick_forbidden, g.spacing_mm, g.version + 1,
-            self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
-            rv.shaft_base, self._removed_tick, self._removed_total, self.touch, self._touched,
-            rv.vert, self._acc, self.out, self.shaft_out, self._cache, self._rows, self._stamp)
+        m = self.materials
+        if rv is None:
+            b = self.burr
+            path = self.path
+            burr = SphereTick(b.cos_theta, b.sin_theta, b.cos_phi, b.sin_phi, b.d_theta,
+                              b.d_phi, b.cos_sub_t, b.sin_sub_t, b.cos_sub_p, b.sin_sub_p,
+                              b.cos_theta_v, b.sin_theta_v, b.cos_phi_v, b.sin_phi_v,
+                              self._params.radius_mm, self._previous, path.ring, path.meta,
+                              path.candidates)
+            vert = self._vert
+        else:
+            r = rv.grid
+            burr = RevolvedTick(r.elem, r.ds, r.sub, r.ds_sub, r.cos_phi, r.sin_phi, r.d_phi,
+                                r.cos_sub_p, r.sin_sub_p, rv.corners, rv.cos_pv, rv.sin_pv,
+                                rv.profile, rv.bounds, rv.geo, rv.normal_ratio, rv.edge_ratio,
+                                rv.material_k, rv.shaft_base, self._rows)
+            vert = rv.vert
+        return (burr, g.density, g.swept, g.labels, m.us, m.usk, m.forbidden, g.brick_bone,
+                g.brick_full, g.brick_version, self._brick_forbidden, g.spacing_mm,
+                self.shaft.radius_mm, self.shaft.length_mm, self.shaft.stiffness_n_mm3,
+                self._removed_tick, self._removed_total, self.touch, self._touched, vert,
+                self._acc, self.out, self.shaft_out, self._cache)
 
     def step(
         self,
@@ -585,12 +581,12 @@ class BoneEngine:
         self.step_raw(far, unit, unit, self.params.min_cutting_rpm + 1.0, carve=False)
         self.ticks -= 1
         self.removed_this_tick_mm3()  # run only by ticks that remove bone, which this is not
-        # The other burrs' tick too (a tool change mid-stream must not compile): the current
-        # one's tables, or a small stand-in's of the same types.
-        rv = self._revolved
-        if rv is None:
-            rv = RevolvedTables.build(Burr(Sphere(self._params.radius_mm), _WARM_CUTTER),
-                                      self._params.k, 8, self.burr.refine)
+        # The other burrs' tick too (a tool change mid-stream must not compile): the round
+        # one's, or a small stand-in's of the same types as any other's.
+        other = None if self._revolved is not None else RevolvedTables.build(
+            Burr(Sphere(self._params.radius_mm), _WARM_CUTTER), self._params.k, 8,
+            self.burr.refine)
         self._stamp += 1
-        self._tick_revolved(rv, far, unit, unit, 1.0, True, False)
+        bone_tick(*self._tick_fixed(other), far, unit, unit, 1.0, True, False,
+                  self.grid.version + 1, self._stamp)
 

@@ -14,8 +14,17 @@ from __future__ import annotations
 import math
 
 from ..hot_kernel import hot_inline, hot_kernel
-from ..model.kernels import N_ACC, N_OUT, accumulate_forces, finish, tool_basis
-from .voxels import cache_origin, sample_bone, sphere_reach, stencils_inside
+from ..model.kernels import (
+    N_ACC,
+    N_OUT,
+    accumulate_forces,
+    finish,
+    in_tool_frame,
+    tool_basis,
+)
+from .cutters import SphereReach
+from .sampling import sample_bone
+from .voxels import cache_origin, spacing_and_point, sphere_reach, stencils_inside
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
 #: A crossing bone surface makes them differ by ~1; smooth partial availability (the sides of
@@ -64,17 +73,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
         acc[n] = 0.0
     for n in range(N_OUT):
         out[n] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     basis = tool_basis(axis[0], axis[1], axis[2])
     e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = basis
-    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
-    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
-    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    v1, v2, v3 = in_tool_frame(v_feed, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
     feed_speed = math.sqrt(v1 * v1 + v2 * v2 + v3 * v3)
     has_cut = cutting and has_feed
@@ -84,6 +86,7 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     w_unit = radius * d_theta * d_phi / abs_omega if cutting else 0.0
     area_unit = radius * radius * d_theta * d_phi
     r_in2, r_out2 = sphere_reach(radius, hx, hy, hz)
+    reach = SphereReach(radius, r_in2, r_out2, cand)
     o0, o1, o2 = cache_origin(cache, cx, cy, cz, hx, hy, hz)
     n_theta = cos_t.shape[0]
     n_phi = cos_p.shape[0]
@@ -115,10 +118,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
             if (k & 1) == 1 and not pole:
                 continue
             if vert[j, k, 0] == PENDING:
-                _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
-                               swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
-                               hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
-                               half_p, interior)
+                _sample_corner(reach, vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k],
+                               density, swept, labels, us_tab, usk_tab, brick_bone, centre,
+                               basis, hx, hy, hz, cache, o0, o1, o2, tick, half_t, half_p,
+                               interior)
     # Pass 1b: the fine corners, copied where the bone is uniform around them, else sampled;
     # the unneeded ones read as no bone. Noted: the first and last ring with bone.
     ring_lo = n_theta + 1
@@ -126,10 +129,10 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
     for j in range(n_theta + 1):
         for k in range(n_phi):
             if settle_fine(vert, j, k, n_theta, n_phi):
-                _sample_corner(vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k], density,
-                               swept, labels, us_tab, usk_tab, brick_bone, centre, radius, basis,
-                               hx, hy, hz, r_in2, r_out2, cache, o0, o1, o2, tick, cand, half_t,
-                               half_p, interior)
+                _sample_corner(reach, vert, j, k, sin_tv[j], cos_tv[j], cos_pv[k], sin_pv[k],
+                               density, swept, labels, us_tab, usk_tab, brick_bone, centre,
+                               basis, hx, hy, hz, cache, o0, o1, o2, tick, half_t, half_p,
+                               interior)
             if vert[j, k, 0] > 0.0:
                 ring_lo = min(ring_lo, j)
                 ring_hi = j
@@ -204,9 +207,8 @@ def cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t,
                     # The sub-element's half-sides along θ and φ (for the path's share).
                     h2 = half_p * st2
                     frac, us_f, usk_f, gx, gy, gz = sample_bone(
-                        density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz,
-                        hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1,
-                        o2, tick, cand,
+                        reach, density, swept, labels, us_tab, usk_tab, brick_bone, px, py,
+                        pz, hx, hy, hz, cx, cy, cz, cache, o0, o1, o2, tick,
                         (half_t * (ct2 * cp2 * e1x + ct2 * sp2 * e2x - st2 * e3x),
                          half_t * (ct2 * cp2 * e1y + ct2 * sp2 * e2y - st2 * e3y),
                          half_t * (ct2 * cp2 * e1z + ct2 * sp2 * e2z - st2 * e3z)),
@@ -257,15 +259,17 @@ def patch_half_sides(radius, d_theta, d_phi, m):
 
 
 @hot_inline
-def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab, usk_tab,
-                   brick_bone, centre, radius, basis, hx, hy, hz, r_in2, r_out2, cache, o0, o1,
-                   o2, tick, cand, half_t, half_p, interior):
+def _sample_corner(reach, vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab,
+                   usk_tab, brick_bone, centre, basis, hx, hy, hz, cache, o0, o1, o2, tick,
+                   half_t, half_p, interior):
     """Sample the bone at corner (j, k) of the burr grid into ``vert[j, k]``.
 
-    ``centre``: (3,) burr centre; ``basis``: the tool frame (e1, e2, e3) as 9 floats
-    (``tool_basis``), packed to keep to 30 arguments (``hot_kernel``); ``interior``: every
-    sample's stencil lies inside the grid (``voxels.stencils_inside``).
+    ``reach``: the burr (``cutters.SphereReach``); ``centre``: (3,) burr centre; ``basis``:
+    the tool frame (e1, e2, e3) as 9 floats (``tool_basis``), packed to keep to 30 arguments
+    (``hot_kernel``); ``interior``: every sample's stencil lies inside the grid
+    (``voxels.stencils_inside``).
     """
+    radius = reach.radius
     cx = centre[0]
     cy = centre[1]
     cz = centre[2]
@@ -277,8 +281,8 @@ def _sample_corner(vert, j, k, st, ct, cpv, spv, density, swept, labels, us_tab,
     pz = cz + radius * (n1 * e1z + n2 * e2z + ct * e3z)
     h2 = half_p * st
     frac, us_f, usk_f, _, _, _ = sample_bone(
-        density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-        cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand,
+        reach, density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
+        cx, cy, cz, cache, o0, o1, o2, tick,
         (half_t * (ct * cpv * e1x + ct * spv * e2x - st * e3x),
          half_t * (ct * cpv * e1y + ct * spv * e2y - st * e3y),
          half_t * (ct * cpv * e1z + ct * spv * e2z - st * e3z)),

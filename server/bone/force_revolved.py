@@ -17,14 +17,14 @@ import math
 import numpy as np
 
 from ..hot_kernel import hot_inline, hot_kernel
-from ..model.kernels import N_ACC, N_OUT, finish
+from ..model.kernels import N_ACC, N_OUT, finish, in_tool_frame
 from ..model.kernels_revolved import accumulate_forces_revolved
 from ..model.revolved import RevolvedGrid
 from ..model.shapes import Burr
-from .bricks import BRICK_MASK, BRICK_SHIFT
-from .carve_revolved import cached_revolved_coverage
+from .cutters import RevolvedReach
 from .force import PENDING, mark_needed, settle_fine
-from .voxels import _gather_edge, _gather_interior, cache_origin
+from .sampling import sample_bone
+from .voxels import cache_origin, spacing_and_point
 
 #: Elements whose corner fractions differ by more than this are integrated on sub-elements.
 #: Tighter than the sphere's 0.25 (``force.SMOOTH_SPREAD``): an end disc or a rim meets the
@@ -59,91 +59,20 @@ def revolved_corners(burr: Burr, grid: RevolvedGrid) -> tuple[np.ndarray, np.nda
             np.ascontiguousarray(np.sin(phi)))
 
 
-@hot_inline
-def _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, density,
-                           profile, geo, cache, o0, o1, o2, tick):
-    """``voxels._availability`` with this burr's own coverage (``carve_revolved``): the share
-    of the stencil's bone outside the burr that no other burr position has swept."""
-    nx, ny, nz = swept.shape
-    a_num = 0.0
-    a_den = 0.0
-    for di in range(2):
-        i = i0 + di
-        wx = tx if di == 1 else 1.0 - tx
-        in_x = 0 <= i < nx
-        dx = i * hx - cx
-        for dj in range(2):
-            j = j0 + dj
-            wy = ty if dj == 1 else 1.0 - ty
-            in_xy = in_x and 0 <= j < ny
-            dy = j * hy - cy
-            for dk in range(2):
-                k = k0 + dk
-                w = wx * wy * (tz if dk == 1 else 1.0 - tz)
-                if not (in_xy and 0 <= k < nz):
-                    continue
-                d = density[i, j, k]
-                if d == 0:
-                    continue
-                w *= float(d)
-                c = swept[i, j, k]
-                if c == 0:
-                    a_num += w
-                    a_den += w
-                    continue
-                cq = cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy,
-                                              k * hz - cz, profile, geo, hx, hy, hz)
-                if cq == 255:
-                    continue  # wholly inside the burr: says nothing about what lies outside
-                a_den += w
-                if c <= cq:
-                    a_num += w
-                else:
-                    a_num += w * float(255 - c) / float(255 - cq)
-    if a_den <= 0.0:
-        return 0.0
-    return a_num / a_den
+#: A patch's half-sides for ``sampling.sample_bone``: unused by a burr without a path.
+_NO_PATCH = (0.0, 0.0, 0.0)
 
 
 @hot_kernel
 def sample_bone_revolved(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx,
                          hy, hz, cx, cy, cz, profile, geo, cache, o0, o1, o2, tick):
-    """``voxels.sample_bone`` for a burr of revolution, without the path: (fraction,
-    us_fraction, usk_fraction, gx, gy, gz) at p (grid frame, mm)."""
-    nx, ny, nz = density.shape
-    fx = px / hx
-    fy = py / hy
-    fz = pz / hz
-    i0f = math.floor(fx)
-    j0f = math.floor(fy)
-    k0f = math.floor(fz)
-    if i0f < -1.0 or j0f < -1.0 or k0f < -1.0 or i0f >= nx or j0f >= ny or k0f >= nz:
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    i0 = int(i0f)
-    j0 = int(j0f)
-    k0 = int(k0f)
-    interior = i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny and k0 + 1 < nz
-    if (interior and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
-            and (k0 & BRICK_MASK) != BRICK_MASK
-            and brick_bone[i0 >> BRICK_SHIFT, j0 >> BRICK_SHIFT, k0 >> BRICK_SHIFT] == 0):
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    tx = fx - i0f
-    ty = fy - j0f
-    tz = fz - k0f
-    if interior:
-        bone, us, usk, gx, gy, gz, swept_any = _gather_interior(
-            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
-    else:
-        bone, us, usk, gx, gy, gz, swept_any = _gather_edge(
-            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
-    if bone == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    scale = 1.0 / 255.0
-    if swept_any:
-        scale *= _availability_revolved(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz,
-                                        density, profile, geo, cache, o0, o1, o2, tick)
-    return (bone * scale, us * scale, usk * scale,
-            gx / (255.0 * hx), gy / (255.0 * hy), gz / (255.0 * hz))
+    """``sampling.sample_bone`` for a burr of revolution (it keeps no path), called rather
+    than inlined (inlined at its two call sites it compiled twice over, for little: see
+    tick-levers.md): (fraction, us_fraction, usk_fraction, gx, gy, gz) at p (grid frame,
+    mm); ``profile``, ``geo`` as ``cutters.RevolvedReach``."""
+    return sample_bone(RevolvedReach(profile, geo), density, swept, labels, us_tab, usk_tab,
+                       brick_bone, px, py, pz, hx, hy, hz, cx, cy, cz, cache, o0, o1, o2, tick,
+                       _NO_PATCH, _NO_PATCH, False)
 
 
 @hot_inline
@@ -196,18 +125,11 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
         acc[n] = 0.0
     for n in range(N_OUT):
         out[n] = 0.0
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     e1x, e1y, e1z = geo[0], geo[1], geo[2]
     e2x, e2y, e2z = geo[3], geo[4], geo[5]
     e3x, e3y, e3z = geo[6], geo[7], geo[8]
-    v1 = v_feed[0] * e1x + v_feed[1] * e1y + v_feed[2] * e1z
-    v2 = v_feed[0] * e2x + v_feed[1] * e2y + v_feed[2] * e2z
-    v3 = v_feed[0] * e3x + v_feed[1] * e3y + v_feed[2] * e3z
+    v1, v2, v3 = in_tool_frame(v_feed, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     has_feed = v1 * v1 + v2 * v2 + v3 * v3 > 0.0
     sample_all = not (cutting and has_feed)  # contact needs every element
     abs_omega = abs(omega)

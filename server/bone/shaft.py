@@ -12,7 +12,7 @@ import math
 
 from ..hot_kernel import hot_kernel
 from .bricks import BRICK, BRICK_SHIFT
-from .voxels import plane_fraction, voxel_span
+from .voxels import plane_fraction, spacing_and_point, voxel_span
 
 # Layout of the float64 shaft vector (length N_SHAFT), grid frame until rotated to the world.
 SHAFT_FORCE = 0  # [0:3] force on the shaft, N
@@ -37,12 +37,7 @@ def shaft_contact(density, swept, brick_bone, spacing, centre, axis, burr_radius
         out[n] = 0.0
     if length <= 0.0 or shaft_radius <= 0.0:
         return
-    hx = spacing[0]
-    hy = spacing[1]
-    hz = spacing[2]
-    cx = centre[0]
-    cy = centre[1]
-    cz = centre[2]
+    hx, hy, hz, cx, cy, cz = spacing_and_point(spacing, centre)
     ax = axis[0]
     ay = axis[1]
     az = axis[2]

@@ -1,4 +1,5 @@
-"""One tick of the bone stage, fused: carve, cutting force, shaft contact — one numba call.
+"""One tick of the bone stage for any burr, fused: carve, cutting force, shaft contact — one
+numba call.
 
 numba keys the cached ``bone_tick`` on this file only, not on the kernels it calls; the
 ``burrforce`` command and the tests keep the cache in a directory per digest of the server's
@@ -9,30 +10,28 @@ from __future__ import annotations
 
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT
-from .carve import TOUCH_NEAR_BONE, carve_sphere
-from .force import cut_voxels, patch_half_sides
-from .history import history_candidates, history_record
-from .shaft import N_SHAFT, shaft_contact
+from .carve import TOUCH_NEAR_BONE
+from .tick_hooks import carve_stage, clear, force_stage, shaft_stage, tick_end
 
 
 @hot_kernel
-def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-              sin_sub_p, cos_tv, sin_tv, cos_pv, sin_pv, radius, density, swept, labels, us_tab,
-              usk_tab, forbidden, brick_bone, brick_full, brick_version, brick_forbidden,
-              spacing, previous, shaft_radius, shaft_length, shaft_stiffness, removed,
-              removed_total, touch, touched, vert, acc, out, shaft_out, cache, path_ring,
-              path_meta, path_cand, centre, axis, v_feed, omega, cutting, carve, version_next,
-              tick):
+def bone_tick(burr, density, swept, labels, us_tab, usk_tab, forbidden, brick_bone, brick_full,
+              brick_version, brick_forbidden, spacing, shaft_radius, shaft_length,
+              shaft_stiffness, removed, removed_total, touch, touched, vert, acc, out,
+              shaft_out, cache, centre, axis, v_feed, omega, cutting, carve, version_next, tick):
     """Carve (if ``carve`` and ``cutting``), then the cutting force, then the shaft, then
-    extend the burr's path (``history``: ``path_ring``, ``path_meta``, and ``path_cand`` for
-    this tick's nearby capsules) with this tick's position if it carved, and keep that
-    position in ``previous`` for the next tick's carve.
+    what the burr keeps for the next tick (``tick_hooks.tick_end``: the round burr's path
+    and last carving position).
 
-    The arguments that change every tick come last (from ``centre``): the engine binds the
-    others once (``hot_kernel.DirectCall``). All vectors are in the grid frame; ``axis`` is
-    the unit tool axis. A burr with no bone brick within reach skips the force stage entirely:
-    far from bone a tick costs a few brick lookups. See ``carve_sphere``, ``cut_voxels`` and
-    ``shaft_contact`` for the arguments; ``removed`` receives this tick's removal per label
+    ``burr``: the tables of the burr cutting now, ``tick_hooks.SphereTick`` or
+    ``tick_hooks.RevolvedTick``; the stages that depend on its shape are chosen by that type
+    when this compiles (``tick_hooks``). The arguments that change every tick come last
+    (from ``centre``): the engine binds the others once (``hot_kernel.DirectCall``). All
+    vectors are in the grid frame; ``centre`` is the burr's (reference) centre and ``axis``
+    the unit tool axis. A burr with no bone brick within reach skips the force stage
+    entirely: far from bone a tick costs a few brick lookups. See ``carve.carve_sphere``,
+    ``force.cut_voxels`` and ``shaft.shaft_contact`` for the arguments; ``vert`` is the force's
+    corner scratch for this burr's grid; ``removed`` receives this tick's removal per label
     and is added to ``removed_total`` (both float64 (256,), units of 255² voxel volumes).
 
     Returns:
@@ -40,45 +39,22 @@ def bone_tick(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     """
     carved = carve and cutting
     clear(removed, removed.shape[0])
-    removed_any = carve_sphere(density, swept, labels, forbidden, brick_bone, brick_full,
-                               brick_version, brick_forbidden, spacing, centre, previous,
-                               radius, carved, version_next, removed, touch, touched, cache,
-                               tick)
+    removed_any = carve_stage(burr, density, swept, labels, forbidden, brick_bone, brick_full,
+                              brick_version, brick_forbidden, spacing, centre, axis, carved,
+                              version_next, removed, touch, touched, cache, tick)
     if removed_any:
         add_to(removed_total, removed)
-    if touch[TOUCH_NEAR_BONE] != 0.0:
-        # The path's capsules that can hold a sample: the burr's surface plus a stencil.
-        h_max = max(spacing[0], max(spacing[1], spacing[2]))
-        half_t, half_p = patch_half_sides(radius, d_theta, d_phi, cos_sub_t.shape[0])
-        history_candidates(path_ring, path_meta, centre[0], centre[1], centre[2],
-                           radius + 2.0 * h_max, radius, half_t + half_p, path_cand)
-        cut_voxels(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, cos_sub_p,
-                   sin_sub_p, (cos_tv, sin_tv, cos_pv, sin_pv), radius, centre, axis, v_feed,
-                   omega, cutting, density, swept, labels, us_tab, usk_tab,
-                   brick_bone, spacing, vert, acc, out, cache, tick, path_cand)
+    near_bone = touch[TOUCH_NEAR_BONE] != 0.0
+    if near_bone:
+        force_stage(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing, centre,
+                    axis, v_feed, omega, cutting, vert, acc, out, cache, tick)
     else:
         clear(out, N_OUT)
         clear(acc, N_ACC)
-    if shaft_length > 0.0:
-        shaft_contact(density, swept, brick_bone, spacing, centre, axis, radius,
-                      shaft_radius, shaft_length, shaft_stiffness, shaft_out)
-    else:
-        clear(shaft_out, N_SHAFT)
-    # Only near bone: a hand wandering in air would fill the ring and push real cuts out.
-    history_record(path_ring, path_meta, centre[0], centre[1], centre[2], radius,
-                   carved and touch[TOUCH_NEAR_BONE] != 0.0,
-                   min(spacing[0], min(spacing[1], spacing[2])))
-    if carved:
-        for n in range(3):
-            previous[n] = centre[n]
+    shaft_stage(burr, density, swept, brick_bone, spacing, centre, axis, shaft_radius,
+                shaft_length, shaft_stiffness, shaft_out)
+    tick_end(burr, centre, spacing, carved, near_bone)
     return removed_any
-
-
-@hot_inline
-def clear(values, n_values):
-    """Zero the first ``n_values`` of a float64 vector (outputs nothing wrote this tick)."""
-    for n in range(n_values):
-        values[n] = 0.0
 
 
 @hot_inline

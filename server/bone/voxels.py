@@ -1,4 +1,5 @@
-"""Per-voxel numerics shared by carving and the voxel force: sphere coverage and bone sampling.
+"""Per-voxel numerics shared by carving and the voxel force: sphere coverage, the coverage
+cache and the trilinear gathers the bone samplers read (``sampling``).
 
 Positions are in the grid frame, mm, with voxel (i, j, k)'s centre at (i·hx, j·hy, k·hz).
 """
@@ -11,8 +12,13 @@ import numpy as np
 
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import box_fraction
-from .bricks import BRICK_MASK, BRICK_SHIFT
-from .history import CAND_COUNT, CAND_MODE, HISTORY_EXACT, history_share
+
+
+@hot_inline
+def spacing_and_point(spacing, point):
+    """(hx, hy, hz, px, py, pz): a voxel's sides (``spacing``, (3,) mm) and a point ((3,),
+    grid frame, mm) as scalars, the way every kernel over the voxels starts."""
+    return spacing[0], spacing[1], spacing[2], point[0], point[1], point[2]
 
 
 @hot_kernel
@@ -112,73 +118,7 @@ def stencils_inside(nx, ny, nz, hx, hy, hz, cx, cy, cz, reach):
 
 
 @hot_inline
-def sample_bone(density, swept, labels, us_tab, usk_tab, brick_bone, px, py, pz, hx, hy, hz,
-                cx, cy, cz, radius, r_in2, r_out2, cache, o0, o1, o2, tick, cand, s1, s2,
-                interior):
-    """The bone the burr meets at point p (grid frame, mm), trilinear in the voxel centres.
-
-    Returns (fraction, us_fraction, usk_fraction, gx, gy, gz):
-        fraction: the original density at p (0–1) times its availability — the share of the
-            bone around p outside the burr that no *other* burr position has swept. What the
-            burr at (cx, cy, cz) covers counts as available whether or not this tick carved it:
-            it is what the model's elements are cutting (or, below the cutting speed, touching).
-            Where the stencil holds swept voxels, the burr's own path (``history``) decides:
-            ``cand`` holds its capsules near the burr and whether they replace the voxels'
-            availability (``HISTORY_EXACT``) or multiply it; the patch at p is the rectangle
-            spanned by its half-sides s1, s2 (mm, tangent to the burr; 3-tuples).
-        us_fraction, usk_fraction: fraction weighted by each voxel's Us, Us·K (N/mm²).
-        gx, gy, gz: gradient of the original density, 1/mm (points into the bone).
-
-    Voxels outside the grid are empty and unswept. ``interior``: the caller knows p's stencil
-    lies inside the grid (``stencils_inside``), so it is not checked. ``cache``, (o0, o1,
-    o2), ``tick``: the tick's coverage cache (``cached_coverage``).
-    """
-    nx, ny, nz = density.shape
-    # Reciprocals of loop-invariant spacings: LLVM hoists them out of the caller's loops.
-    fx = px * (1.0 / hx)
-    fy = py * (1.0 / hy)
-    fz = pz * (1.0 / hz)
-    i0f = math.floor(fx)
-    j0f = math.floor(fy)
-    k0f = math.floor(fz)
-    if not interior and (i0f < -1.0 or j0f < -1.0 or k0f < -1.0 or i0f >= nx or j0f >= ny
-                         or k0f >= nz):
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    i0 = int(i0f)
-    j0 = int(j0f)
-    k0 = int(k0f)
-    inside = interior or (i0 >= 0 and j0 >= 0 and k0 >= 0 and i0 + 1 < nx and j0 + 1 < ny
-                          and k0 + 1 < nz)
-    # A stencil inside one brick that holds no bone reads nothing else.
-    if (inside and (i0 & BRICK_MASK) != BRICK_MASK and (j0 & BRICK_MASK) != BRICK_MASK
-            and (k0 & BRICK_MASK) != BRICK_MASK
-            and brick_bone[np.uint64(i0 >> BRICK_SHIFT), np.uint64(j0 >> BRICK_SHIFT),
-                           np.uint64(k0 >> BRICK_SHIFT)] == 0):
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    tx = fx - i0f
-    ty = fy - j0f
-    tz = fz - k0f
-    if inside:
-        bone, us, usk, gx, gy, gz, swept_any = _gather_interior(
-            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
-    else:
-        bone, us, usk, gx, gy, gz, swept_any = _gather_edge(
-            density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz)
-    if bone == 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    scale = 1.0 / 255.0
-    if swept_any:
-        if cand[0, CAND_MODE] != HISTORY_EXACT:
-            scale *= _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz,
-                                   radius, r_in2, r_out2, density, cache, o0, o1, o2, tick)
-        if cand[0, CAND_COUNT] > 0.0 and scale > 0.0:
-            scale *= history_share(cand, px, py, pz, s1[0], s1[1], s1[2], s2[0], s2[1], s2[2])
-    return (bone * scale, us * scale, usk * scale,
-            gx * (1.0 / (255.0 * hx)), gy * (1.0 / (255.0 * hy)), gz * (1.0 / (255.0 * hz)))
-
-
-@hot_inline
-def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
+def gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
     """Trilinear original density (×255), its Us and Us·K weighted sums and its gradient (per
     voxel step) for a stencil inside the grid, unrolled: the hot path of every sample."""
     # Unsigned indices (the caller checked the stencil lies inside the grid): numba then
@@ -249,8 +189,8 @@ def _gather_interior(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty
 
 
 @hot_kernel
-def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
-    """``_gather_interior`` for a stencil that leaves the grid (outside voxels are empty)."""
+def gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz):
+    """``gather_interior`` for a stencil that leaves the grid (outside voxels are empty)."""
     nx, ny, nz = density.shape
     bone = 0.0
     us = 0.0
@@ -292,53 +232,3 @@ def _gather_edge(density, swept, labels, us_tab, usk_tab, i0, j0, k0, tx, ty, tz
                 gy += sy * wx * wz * rho
                 gz += sz * wx * wy * rho
     return bone, us, usk, gx, gy, gz, swept_any
-
-
-@hot_inline
-def _availability(swept, i0, j0, k0, tx, ty, tz, hx, hy, hz, cx, cy, cz, radius, r_in2, r_out2,
-                  density, cache, o0, o1, o2, tick):
-    """Share of the stencil's bone outside the burr that no other burr position has swept
-    (see ``sample_bone``), in [0, 1]. Weighted by the original density, so air — which carving
-    does not track everywhere — has no say."""
-    nx, ny, nz = swept.shape
-    a_num = 0.0
-    a_den = 0.0
-    for di in range(2):
-        i = i0 + di
-        wx = tx if di == 1 else 1.0 - tx
-        in_x = 0 <= i < nx
-        dx = i * hx - cx
-        for dj in range(2):
-            j = j0 + dj
-            wy = ty if dj == 1 else 1.0 - ty
-            in_xy = in_x and 0 <= j < ny
-            dy = j * hy - cy
-            for dk in range(2):
-                k = k0 + dk
-                w = wx * wy * (tz if dk == 1 else 1.0 - tz)
-                if not (in_xy and 0 <= k < nz):
-                    continue
-                d = density[i, j, k]
-                if d == 0:
-                    continue
-                w *= float(d)
-                c = swept[i, j, k]
-                if c == 0:
-                    a_num += w
-                    a_den += w
-                    continue
-                dz = k * hz - cz
-                if dx * dx + dy * dy + dz * dz <= r_in2:
-                    continue
-                cq = cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy,
-                                     hz, r_in2, r_out2)
-                if cq == 255:
-                    continue  # wholly inside the burr: says nothing about what lies outside
-                a_den += w
-                if c <= cq:
-                    a_num += w
-                else:
-                    a_num += w * float(255 - c) / float(255 - cq)
-    if a_den <= 0.0:
-        return 0.0
-    return a_num / a_den

@@ -1,6 +1,6 @@
 """numba kernel of the cutting-force model for a burr of any shape (a surface of revolution).
 
-Same conventions and result layout as kernels.cut_flat (kernels.OUT_*, accumulated in the tool
+Same conventions and result layout as kernels_flat.cut_flat (kernels.OUT_*, accumulated in the tool
 frame and finished by kernels.finish); the elements are the (s, φ) elements of
 revolved.RevolvedGrid, and each element's force carries a normal ratio and an edge ratio
 (shapes.Cutter.force_ratios) instead of the abrasive K alone.
@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 
 from ..hot_kernel import hot_kernel
-from .kernels import box_fraction, finish, start_flat
+from .kernels import add_jacobian, box_fraction, finish
+from .kernels_flat import start_flat
 
 # Rows of the grid's element and sub-element tables (revolved.RevolvedGrid.elem / .sub).
 _RHO, _Z, _NR, _NZ, _TR, _TZ, _KAPPA = 0, 1, 2, 3, 4, 5, 6
@@ -58,15 +59,7 @@ def accumulate_forces_revolved(acc, ft, fn, fg, area, vn, rho, z, nr, nz, tr, tz
     m1 = n1 / vn
     m2 = n2 / vn
     m3 = nz / vn
-    acc[18] += f1 * m1
-    acc[19] += f1 * m2
-    acc[20] += f1 * m3
-    acc[21] += f2 * m1
-    acc[22] += f2 * m2
-    acc[23] += f2 * m3
-    acc[24] += f3 * m1
-    acc[25] += f3 * m2
-    acc[26] += f3 * m3
+    add_jacobian(acc, f1, f2, f3, m1, m2, m3)
     acc[6] += ft * speed
     acc[7] += area * vn
     acc[8] += 1.0
@@ -213,7 +206,7 @@ def cut_flat_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin
             # m×m sub-elements, exact on the profile. Each counts with its fraction less the
             # element's mean fraction and the centre with the mean: an element wholly in bone
             # then gives exactly its unrefined value, so nothing steps when the surface leaves
-            # it (the sphere kernel's rule, kernels.flat_grid).
+            # it (the sphere kernel's rule, kernels_flat.flat_grid).
             a2 = 0.5 * ds_sub[j]
             hp2 = half_dp / mf
             curve_sub = curve / (mf * mf)

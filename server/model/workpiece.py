@@ -12,7 +12,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from .burr import BurrGrid
-from .kernels import cut_flat
+from .kernels_flat import cut_flat
 
 
 class Workpiece(ABC):
