@@ -8,7 +8,8 @@ the measured ticks (client requests through a tiny C helper built with the syste
 ``--part carve`` counts only the carving kernel (the force stage is then tick − carve).
 ``--burr NAME`` ploughs the same groove with another burr, its lowest point as deep: a 6-flute
 round burr of the same radius (``round-fluted``) or ``bench accuracy``'s shapes (``BURRS``);
-each runs the revolved tick (``bone.tick_revolved``: every burr but the round abrasive one).
+each runs the one tick (``bone.tick.bone_tick``) with the revolved-profile hooks
+(``bone.tick_hooks.RevolvedTick``: every burr but the round abrasive one).
 ``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared machine).
 
 Examples::

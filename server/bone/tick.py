@@ -2,8 +2,9 @@
 numba call.
 
 numba keys the cached ``bone_tick`` on this file only, not on the kernels it calls; the
-``burrforce`` command and the tests keep the cache in a directory per digest of the server's
-sources (``compile_cache``), so an edit to carve.py or voxels.py never runs a stale tick.
+``burrforce`` command and the tests keep the cache in a directory per digest of the kernel
+modules and what they import (``compile_cache``), so an edit to carve.py or voxels.py never
+runs a stale tick.
 """
 
 from __future__ import annotations
