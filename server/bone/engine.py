@@ -357,6 +357,28 @@ class BoneEngine:
             forbidden_bricks(g.density, g.labels, materials.forbidden, out)
         return out
 
+    @property
+    def last_carve_g_mm(self) -> tuple[float, float, float] | None:
+        """Where the burr's centre last carved (grid frame, mm), or None when the next tick
+        carves the whole neighbourhood: a recording saves it so its replay skips what the
+        live engine skipped."""
+        if np.isnan(self._previous).any():
+            return None
+        return (float(self._previous[0]), float(self._previous[1]), float(self._previous[2]))
+
+    @property
+    def touching(self) -> frozenset[int]:
+        """The labels of the forbidden materials the burr touches now."""
+        return self._touching
+
+    def resume(self, last_carve_g_mm: tuple[float, float, float] | None,
+               touching: frozenset[int]) -> None:
+        """Take up where an engine left off (:attr:`last_carve_g_mm`, :attr:`touching`): a
+        replay starts from the state its recording saved, so it carves and reports contact
+        events as the live engine did."""
+        self._previous[:] = np.nan if last_carve_g_mm is None else last_carve_g_mm
+        self._touching = frozenset(int(x) for x in touching)
+
     def forget_last_carve(self) -> None:
         """Carve the burr's whole neighbourhood next tick (after the radius or the bone's
         ``swept`` array changed behind the engine's back)."""

@@ -96,7 +96,7 @@ def session_meta(session: Session, bone_name: str = "") -> dict[str, Any]:
     needs, taken from ``session`` and its engine now (call it when the snapshot is taken)."""
     engine = session.engine
     config = session.config
-    previous = engine._previous  # where the engine last carved: it skips what that swept
+    previous = engine.last_carve_g_mm  # the next tick skips what that carve swept
     n_theta, n_phi, refine = engine.burr.key
     return {
         "session_id": session.id,
@@ -116,10 +116,9 @@ def session_meta(session: Session, bone_name: str = "") -> dict[str, Any]:
         "bone_version": int(engine.grid.version),
         "grid_shape": list(engine.grid.shape),
         "spacing_mm": engine.grid.spacing_mm.tolist(),
-        "carve_from_g": None if np.isnan(previous).any()
-        else [json_float(x) for x in previous],
+        "carve_from_g": None if previous is None else [json_float(x) for x in previous],
         "burr_path": engine.path.state(),
-        "touching_labels": sorted(int(x) for x in engine._touching),
+        "touching_labels": sorted(engine.touching),
         "engine_ticks": int(engine.ticks),
     }
 

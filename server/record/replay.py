@@ -415,11 +415,10 @@ def _engine(rec: Recording, bone: Bone, table: MaterialTable,
                             n_phi=int(burr["n_phi"]), refine=int(burr["refine"]),
                             max_events=1 << 30)
         carve_from = meta.get("carve_from_g")
-        if carve_from is not None:
-            engine._previous[:] = [float(x) for x in carve_from]
+        engine.resume(None if carve_from is None else tuple(float(x) for x in carve_from),
+                      frozenset(int(x) for x in meta.get("touching_labels", ())))
         if meta.get("burr_path") is not None:  # older recordings: the voxels alone
             engine.path.restore(meta["burr_path"])
-        engine._touching = frozenset(int(x) for x in meta.get("touching_labels", ()))
         tf = frames.Transform(frames.frame(meta["frame"]),
                               tuple(meta.get("placement_position", (0.0, 0.0, 0.0))),
                               tuple(meta.get("placement_orientation", (0.0, 0.0, 0.0, 1.0))),
