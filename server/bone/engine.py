@@ -26,12 +26,11 @@ from ..model.kernels import (
     new_scratch,
 )
 from ..model.params import CuttingParams
-from ..model.revolved import RevolvedGrid
 from ..model.shapes import Abrasive, Burr, Fluted, Sphere
 from .bricks import BRICK, LABEL_WORDS, forbidden_bricks, forbidden_from_labels
 from .carve import N_TOUCH, TOUCH_FORBIDDEN
-from .carve_revolved import N_GEO, bounding_radius_mm, profile_table, shape_bounds
-from .force_revolved import revolved_corners
+from .carve_revolved import bounding_radius_mm
+from .force_revolved import RevolvedTables
 from .grid import BoneGrid, check_voxel_size
 from .history import BurrPath
 from .materials import N_LABELS, MaterialTable
@@ -152,38 +151,6 @@ class BoneTickResult:
     forbidden_contact: bool
     forbidden_label: int
     bone_version: int
-
-
-@dataclass(frozen=True, eq=False)
-class RevolvedTables:
-    """What a tick of a burr other than the round abrasive one needs beside the engine's
-    buffers: its grid (``RevolvedGrid``), element corners (``force_revolved.revolved_corners``),
-    profile (``carve_revolved.profile_table``) and its bounds (``shape_bounds``), the cutter's
-    force ratios and scratch."""
-
-    burr: Burr
-    grid: RevolvedGrid
-    corners: np.ndarray
-    cos_pv: np.ndarray
-    sin_pv: np.ndarray
-    profile: np.ndarray
-    bounds: np.ndarray
-    normal_ratio: float
-    edge_ratio: float
-    material_k: bool
-    vert: np.ndarray
-    geo: np.ndarray
-    shaft_base: np.ndarray
-
-    @classmethod
-    def build(cls, burr: Burr, k: float, n_elements: int, refine: int) -> RevolvedTables:
-        grid = RevolvedGrid.build(burr, n_elements, refine)
-        corners, cos_pv, sin_pv = revolved_corners(burr, grid)
-        normal, edge = burr.cutter.force_ratios(k)
-        return cls(burr, grid, corners, cos_pv, sin_pv, profile_table(grid.segments),
-                   shape_bounds(burr), float(normal), float(edge),
-                   isinstance(burr.cutter, Abrasive),
-                   np.empty((grid.n_s + 1, grid.n_phi, 3)), np.zeros(N_GEO), np.zeros(3))
 
 
 class BoneEngine:

@@ -7,12 +7,14 @@ density, trilinear, times the share of the surroundings no other burr position h
 at the element corners and on m×m sub-elements where the bone's surface crosses an element.
 Each element's force carries the cutter's ratios (``kernels_revolved.accumulate_forces_revolved``),
 or the materials' own K for an abrasive burr. The burr's path (``history``) is not consulted:
-its capsules describe a sphere's sweep.
+its capsules describe a sphere's sweep. :class:`RevolvedTables` holds what such a burr's tick
+needs beside the engine's buffers.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,7 +22,8 @@ from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT, finish, in_tool_frame
 from ..model.kernels_revolved import accumulate_forces_revolved
 from ..model.revolved import RevolvedGrid
-from ..model.shapes import Burr
+from ..model.shapes import Abrasive, Burr
+from .carve_revolved import N_GEO, profile_table, shape_bounds
 from .cutters import RevolvedReach
 from .force import PENDING, mark_needed, settle_fine
 from .sampling import sample_bone
@@ -282,3 +285,35 @@ def cut_voxels_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, s
             acc[13] = -wy / w_norm
             acc[14] = -wz / w_norm
     finish(acc, e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, v_feed, out)
+
+
+@dataclass(frozen=True, eq=False)
+class RevolvedTables:
+    """What a tick of a burr other than the round abrasive one needs beside the engine's
+    buffers: its grid (``RevolvedGrid``), element corners (:func:`revolved_corners`),
+    profile (``carve_revolved.profile_table``) and its bounds (``shape_bounds``), the cutter's
+    force ratios and scratch."""
+
+    burr: Burr
+    grid: RevolvedGrid
+    corners: np.ndarray
+    cos_pv: np.ndarray
+    sin_pv: np.ndarray
+    profile: np.ndarray
+    bounds: np.ndarray
+    normal_ratio: float
+    edge_ratio: float
+    material_k: bool
+    vert: np.ndarray
+    geo: np.ndarray
+    shaft_base: np.ndarray
+
+    @classmethod
+    def build(cls, burr: Burr, k: float, n_elements: int, refine: int) -> RevolvedTables:
+        grid = RevolvedGrid.build(burr, n_elements, refine)
+        corners, cos_pv, sin_pv = revolved_corners(burr, grid)
+        normal, edge = burr.cutter.force_ratios(k)
+        return cls(burr, grid, corners, cos_pv, sin_pv, profile_table(grid.segments),
+                   shape_bounds(burr), float(normal), float(edge),
+                   isinstance(burr.cutter, Abrasive),
+                   np.empty((grid.n_s + 1, grid.n_phi, 3)), np.zeros(N_GEO), np.zeros(3))
