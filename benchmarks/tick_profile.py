@@ -9,7 +9,7 @@ the measured ticks (client requests through a tiny C helper built with the syste
 ``--burr NAME`` ploughs the same groove with another burr, its lowest point as deep: a 6-flute
 round burr of the same radius (``round-fluted``) or ``bench accuracy``'s shapes (``BURRS``);
 each runs the one tick (``bone.tick.bone_tick``) with the revolved-profile hooks
-(``bone.tick_hooks.RevolvedTick``: every burr but the round abrasive one).
+(``bone.tick_tables.RevolvedTick``: every burr but the round abrasive one).
 ``--no-callgrind`` prints wall-time percentiles instead (indicative only on a shared machine).
 
 Examples::

@@ -18,7 +18,7 @@ import numpy as np
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
 from ..model.shapes import Arc, Burr
-from .voxels import CACHE_SHIFT, plane_fraction
+from .voxels import cache_read, cache_write, plane_fraction
 
 # Layout of the float64 per-tick geometry vector (``fill_geometry``), length N_GEO.
 GEO_E1 = 0  # [0:3] tool basis e1, grid frame
@@ -75,16 +75,8 @@ def shape_bounds(burr: Burr) -> np.ndarray:
 @hot_kernel
 def fill_geometry(geo, axis, bounds, spacing):
     """This tick's tool basis and the shape's bounds into ``geo`` (N_GEO,)."""
-    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = tool_basis(axis[0], axis[1], axis[2])
-    geo[0] = e1x
-    geo[1] = e1y
-    geo[2] = e1z
-    geo[3] = e2x
-    geo[4] = e2y
-    geo[5] = e2z
-    geo[6] = e3x
-    geo[7] = e3y
-    geo[8] = e3z
+    (geo[0], geo[1], geo[2], geo[3], geo[4], geo[5], geo[6], geo[7],
+     geo[8]) = tool_basis(axis[0], axis[1], axis[2])
     geo[GEO_RHO_MAX] = bounds[0]
     geo[GEO_Z_TIP] = bounds[1]
     geo[GEO_Z_TOP] = bounds[2]
@@ -230,17 +222,11 @@ def cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, profi
                              hy, hz):
     """``revolved_coverage`` of voxel (i, j, k), computed at most once per tick (the cache's
     stamping as ``voxels.cached_coverage``)."""
-    a = i - o0
-    b = j - o1
-    c = k - o2
-    if 0 <= a < cache.shape[0] and 0 <= b < cache.shape[1] and 0 <= c < cache.shape[2]:
-        entry = cache[a, b, c]
-        if (entry >> CACHE_SHIFT) == tick:
-            return entry & 255
-        cq = revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz)
-        cache[a, b, c] = (tick << CACHE_SHIFT) | cq
+    a, b, c, cq = cache_read(cache, o0, o1, o2, tick, i, j, k)
+    if cq >= 0:
         return cq
-    return revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz)
+    return cache_write(cache, a, b, c, tick,
+                       revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz))
 
 
 @hot_inline

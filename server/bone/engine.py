@@ -30,14 +30,13 @@ from ..model.shapes import Abrasive, Burr, Fluted, Sphere
 from .bricks import BRICK, LABEL_WORDS, forbidden_bricks, forbidden_from_labels
 from .carve import N_TOUCH, TOUCH_FORBIDDEN
 from .carve_revolved import bounding_radius_mm
-from .force_revolved import RevolvedTables
 from .grid import BoneGrid, check_voxel_size
 from .history import BurrPath
 from .materials import N_LABELS, MaterialTable
 from .seqlock import header_address, read_version, write_begin, write_end
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
 from .tick import bone_tick, removed_mm3
-from .tick_hooks import RevolvedTick, SphereTick
+from .tick_tables import RevolvedTables, RevolvedTick, SphereTick
 from .voxels import coverage_cache_shape
 
 #: Elements the bone's surface crosses are integrated on refine × refine sub-elements. With
@@ -162,7 +161,7 @@ class BoneEngine:
     cutting speed (its own ``us_n_mm2``/``k`` are not used: materials own them), and the
     burr's shape (``params.shape``; :meth:`set_burr` changes it between ticks). Every burr
     runs ``tick.bone_tick``: the round abrasive one on its ``BurrGrid``, any other on a
-    ``RevolvedGrid`` (``tick_hooks.RevolvedTick``) with about as many elements.
+    ``RevolvedGrid`` (``tick_tables.RevolvedTick``) with about as many elements.
 
     Args:
         grid: the bone (carved in place).

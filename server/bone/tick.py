@@ -12,7 +12,8 @@ from __future__ import annotations
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import N_ACC, N_OUT
 from .carve import TOUCH_NEAR_BONE
-from .tick_hooks import carve_stage, clear, force_stage, shaft_stage, tick_end
+from .force import cut_voxels
+from .tick_hooks import carve_stage, clear, path_candidates, shaft_stage, tick_end
 
 
 @hot_kernel
@@ -24,8 +25,8 @@ def bone_tick(burr, density, swept, labels, us_tab, usk_tab, forbidden, brick_bo
     what the burr keeps for the next tick (``tick_hooks.tick_end``: the round burr's path
     and last carving position).
 
-    ``burr``: the tables of the burr cutting now, ``tick_hooks.SphereTick`` or
-    ``tick_hooks.RevolvedTick``; the stages that depend on its shape are chosen by that type
+    ``burr``: the tables of the burr cutting now, ``tick_tables.SphereTick`` or
+    ``tick_tables.RevolvedTick``; the stages that depend on its shape are chosen by that type
     when this compiles (``tick_hooks``). The arguments that change every tick come last
     (from ``centre``): the engine binds the others once (``hot_kernel.DirectCall``). All
     vectors are in the grid frame; ``centre`` is the burr's (reference) centre and ``axis``
@@ -47,8 +48,9 @@ def bone_tick(burr, density, swept, labels, us_tab, usk_tab, forbidden, brick_bo
         add_to(removed_total, removed)
     near_bone = touch[TOUCH_NEAR_BONE] != 0.0
     if near_bone:
-        force_stage(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing, centre,
-                    axis, v_feed, omega, cutting, vert, acc, out, cache, tick)
+        path_candidates(burr, centre, spacing)
+        cut_voxels(burr, centre, axis, v_feed, omega, cutting, density, swept, labels, us_tab,
+                   usk_tab, brick_bone, spacing, vert, acc, out, cache, tick)
     else:
         clear(out, N_OUT)
         clear(acc, N_ACC)

@@ -1,9 +1,10 @@
 """The stages of the bone tick that depend on the burr's shape, chosen by its tables' type.
 
 ``tick.bone_tick`` is one kernel for every burr; its first argument holds the tables of the
-burr cutting now, as a typed tuple: ``SphereTick`` for the round abrasive burr (its grid on
-the sphere, radius, path and last carving position), ``RevolvedTick`` for any other solid of
-revolution (``revolved.RevolvedGrid``'s tables, profile, force ratios and scratch). Each
+burr cutting now, as a typed tuple (``tick_tables``): ``SphereTick`` for the round abrasive
+burr (its grid on the sphere, radius, path and last carving position), ``RevolvedTick`` for
+any other solid of revolution (``revolved.RevolvedGrid``'s tables, profile, force ratios and
+scratch). The force stage is one kernel with hooks of its own (``force``, ``force_hooks``). Each
 stage below is a shape hook (``hot_kernel.hot_hook``): numba picks its body by that type and
 inlines it into the tick, so a tick compiled for one shape holds that shape's stages only —
 the round burr's path and half-space skip compile to nothing for the others.
@@ -11,76 +12,15 @@ the round burr's path and half-space skip compile to nothing for the others.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import numpy as np
-
 from ..hot_kernel import hot_hook, hot_inline
 from .carve import carve_voxels
 from .carve_hooks import RevolvedCarve, SphereCarve
 from .carve_revolved import GEO_Z_TOP, fill_geometry
 from .cutters import is_shape, no_shape
-from .force import cut_voxels, patch_half_sides
-from .force_revolved import cut_voxels_revolved
+from .force_hooks import patch_half_sides
 from .history import history_candidates, history_record
 from .shaft import N_SHAFT, SHAFT_TORQUE, shaft_contact
-
-
-class SphereTick(NamedTuple):
-    """The round abrasive burr's tables (``model.burr.BurrGrid``: element midpoints, corner
-    and sub-element tables, steps in rad), its radius (mm), where it last carved (float64
-    (3,), grid frame, NaN when unknown: the carve skips what that position swept) and its
-    path (``history.BurrPath``'s ring, meta and candidates)."""
-
-    cos_t: np.ndarray
-    sin_t: np.ndarray
-    cos_p: np.ndarray
-    sin_p: np.ndarray
-    d_theta: float
-    d_phi: float
-    cos_sub_t: np.ndarray
-    sin_sub_t: np.ndarray
-    cos_sub_p: np.ndarray
-    sin_sub_p: np.ndarray
-    cos_tv: np.ndarray
-    sin_tv: np.ndarray
-    cos_pv: np.ndarray
-    sin_pv: np.ndarray
-    radius: float
-    previous: np.ndarray
-    path_ring: np.ndarray
-    path_meta: np.ndarray
-    path_cand: np.ndarray
-
-
-class RevolvedTick(NamedTuple):
-    """Any other burr's tables: its ``RevolvedGrid`` (elem, ds, sub, ds_sub, cos_p, sin_p,
-    d_phi, cos_sub_p, sin_sub_p), element corners (``force_revolved.revolved_corners``),
-    profile (``carve_revolved.profile_table``) and bounds (``carve_revolved.shape_bounds``),
-    the cutter's normal and edge ratios and whether the materials' K replaces the normal one
-    (``force_revolved.cut_voxels_revolved``), and scratch: ``geo`` (N_GEO,) filled each tick,
-    ``shaft_base`` (3,), ``rows`` the carve's per-row reach (``carve_revolved``)."""
-
-    elem: np.ndarray
-    ds: np.ndarray
-    sub: np.ndarray
-    ds_sub: np.ndarray
-    cos_p: np.ndarray
-    sin_p: np.ndarray
-    d_phi: float
-    cos_sub_p: np.ndarray
-    sin_sub_p: np.ndarray
-    corners: np.ndarray
-    cos_pv: np.ndarray
-    sin_pv: np.ndarray
-    profile: np.ndarray
-    bounds: np.ndarray
-    geo: np.ndarray
-    kn: float
-    kg: float
-    material_k: bool
-    shaft_base: np.ndarray
-    rows: np.ndarray
+from .tick_tables import RevolvedTick, SphereTick
 
 
 @hot_inline
@@ -123,19 +63,16 @@ def _carve_stage(burr, density, swept, labels, forbidden, brick_bone, brick_full
     return no_shape(burr)
 
 
-def force_stage(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing, centre,
-                axis, v_feed, omega, cutting, vert, acc, out, cache, tick):
-    """The cutting force near bone (``force.cut_voxels`` after the path's candidates,
-    ``force_revolved.cut_voxels_revolved``)."""
+def path_candidates(burr, centre, spacing):
+    """Before the force: the round burr gathers the capsules of its path that can hold a
+    sample this tick (``history.history_candidates``: the burr's surface plus a stencil).
+    Nothing for the others."""
 
 
-@hot_hook(force_stage)
-def _force_stage(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing, centre,
-                 axis, v_feed, omega, cutting, vert, acc, out, cache, tick):
+@hot_hook(path_candidates)
+def _path_candidates(burr, centre, spacing):
     if is_shape(burr, SphereTick):
-        def sphere(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing, centre,
-                   axis, v_feed, omega, cutting, vert, acc, out, cache, tick):
-            # The path's capsules that can hold a sample: the burr's surface plus a stencil.
+        def sphere(burr, centre, spacing):
             h_max = max(spacing[0], max(spacing[1], spacing[2]))
             radius = burr.radius
             half_t, half_p = patch_half_sides(radius, burr.d_theta, burr.d_phi,
@@ -143,24 +80,9 @@ def _force_stage(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spac
             history_candidates(burr.path_ring, burr.path_meta, centre[0], centre[1],
                                centre[2], radius + 2.0 * h_max, radius, half_t + half_p,
                                burr.path_cand)
-            cut_voxels(burr.cos_t, burr.sin_t, burr.cos_p, burr.sin_p, burr.d_theta,
-                       burr.d_phi, burr.cos_sub_t, burr.sin_sub_t, burr.cos_sub_p,
-                       burr.sin_sub_p, (burr.cos_tv, burr.sin_tv, burr.cos_pv, burr.sin_pv),
-                       radius, centre, axis, v_feed, omega, cutting, density, swept, labels,
-                       us_tab, usk_tab, brick_bone, spacing, vert, acc, out, cache, tick,
-                       burr.path_cand)
         return sphere
     if is_shape(burr, RevolvedTick):
-        def revolved(burr, density, swept, labels, us_tab, usk_tab, brick_bone, spacing,
-                     centre, axis, v_feed, omega, cutting, vert, acc, out, cache, tick):
-            cut_voxels_revolved(burr.elem, burr.ds, burr.sub, burr.ds_sub, burr.cos_p,
-                                burr.sin_p, burr.d_phi, burr.cos_sub_p, burr.sin_sub_p,
-                                (burr.corners, burr.cos_pv, burr.sin_pv), burr.profile,
-                                burr.geo, centre, v_feed, omega, cutting,
-                                (burr.kn, burr.kg, burr.material_k), density, swept, labels,
-                                us_tab, usk_tab, brick_bone, spacing, vert, acc, out, cache,
-                                tick)
-        return revolved
+        return lambda burr, centre, spacing: None
     return no_shape(burr)
 
 

@@ -7,7 +7,7 @@ are accumulated in the tool frame and rotated to the world frame at the end.
 Every material ("how much bone is where each element is going") has one fused kernel per
 evaluation that computes its per-element bone fraction and hands it to :func:`accumulate`
 (the flat workpiece: ``kernels_flat`` and ``kernels_revolved``; the voxel bone:
-``bone.force`` and ``bone.force_revolved``).
+``bone.force``).
 """
 
 from __future__ import annotations
@@ -54,6 +54,13 @@ def tool_basis(ax, ay, az):
         b, sign + ay * ay * a, -ay,
         ax, ay, az,
     )
+
+
+@hot_inline
+def rotated(c, s, c_step, s_step):
+    """(cos, sin) of an angle (c, s) = (cos, sin) turned by a step (c_step, s_step): a
+    sub-element's direction from its element's, without a trigonometric call."""
+    return c * c_step - s * s_step, s * c_step + c * s_step
 
 
 @hot_inline
@@ -131,6 +138,13 @@ def accumulate_forces(acc, ft, fn, area, vn, st, ct, cp, sp, speed, spin_sign, r
     acc[3] += tr * ct * cp
     acc[4] += tr * ct * sp
     acc[5] -= tr * st
+    add_totals(acc, ft, area, vn, speed)
+
+
+@hot_inline
+def add_totals(acc, ft, area, vn, speed):
+    """An element's part of the totals in ``acc``: power (|Ft|·|v_t|, N·mm/s), removal rate
+    (area·n·v_f, mm³/s), the count of cutting elements, their area (mm²) and Σ area·|v_t|."""
     acc[6] += ft * speed
     acc[7] += area * vn
     acc[8] += 1.0

@@ -20,6 +20,7 @@ from .kernels import (
     cut_element,
     finish,
     in_tool_frame,
+    rotated,
     tool_basis,
 )
 
@@ -371,11 +372,9 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
             count_before = acc[8]
             mean = 0.0
             for a in range(m):
-                ct2 = ct * cos_sub_t[a] - st * sin_sub_t[a]
-                st2 = st * cos_sub_t[a] + ct * sin_sub_t[a]
+                ct2, st2 = rotated(ct, st, cos_sub_t[a], sin_sub_t[a])
                 for b in range(m):
-                    cp2 = cp * cos_sub_p[b] - sp * sin_sub_p[b]
-                    sp2 = sp * cos_sub_p[b] + cp * sin_sub_p[b]
+                    cp2, sp2 = rotated(cp, sp, cos_sub_p[b], sin_sub_p[b])
                     frac = _sub_fraction(ct2, st2, cp2, sp2, s1, s2, s3, d0, radius,
                                          half_dt / m, half_dp / m, curve_sub, cap_area,
                                          area_unit / m2)
@@ -400,11 +399,9 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                 x = (mean - WHOLE_FROM) / (1.0 - WHOLE_FROM)
                 shift = x * x
                 for a in range(m):
-                    ct2 = ct * cos_sub_t[a] - st * sin_sub_t[a]
-                    st2 = st * cos_sub_t[a] + ct * sin_sub_t[a]
+                    ct2, st2 = rotated(ct, st, cos_sub_t[a], sin_sub_t[a])
                     for b in range(m):
-                        cp2 = cp * cos_sub_p[b] - sp * sin_sub_p[b]
-                        sp2 = sp * cos_sub_p[b] + cp * sin_sub_p[b]
+                        cp2, sp2 = rotated(cp, sp, cos_sub_p[b], sin_sub_p[b])
                         cut_element(acc, -shift, st2, ct2, cp2, sp2, v1 * cp2 + v2 * sp2, v3,
                                     w_force / m2, area_unit * st2 / m2, abs_omega, k,
                                     spin_sign, radius, cutting)

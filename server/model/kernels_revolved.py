@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from ..hot_kernel import hot_kernel
-from .kernels import add_jacobian, box_fraction, finish
+from .kernels import add_jacobian, add_totals, box_fraction, finish, rotated
 from .kernels_flat import start_flat
 
 # Rows of the grid's element and sub-element tables (revolved.RevolvedGrid.elem / .sub).
@@ -60,11 +60,7 @@ def accumulate_forces_revolved(acc, ft, fn, fg, area, vn, rho, z, nr, nz, tr, tz
     m2 = n2 / vn
     m3 = nz / vn
     add_jacobian(acc, f1, f2, f3, m1, m2, m3)
-    acc[6] += ft * speed
-    acc[7] += area * vn
-    acc[8] += 1.0
-    acc[9] += area
-    acc[10] += area * speed
+    add_totals(acc, ft, area, vn, speed)
 
 
 @hot_kernel
@@ -228,8 +224,7 @@ def cut_flat_revolved(elem, ds, sub, ds_sub, cos_p, sin_p, d_phi, cos_sub_p, sin
                                          s1, s2, s3, d0, a2, hp2, curve_sub)
                     if frac == mean:
                         continue
-                    cp2 = cp * cos_sub_p[ib] - sp * sin_sub_p[ib]
-                    sp2 = sp * cos_sub_p[ib] + cp * sin_sub_p[ib]
+                    cp2, sp2 = rotated(cp, sp, cos_sub_p[ib], sin_sub_p[ib])
                     _element(acc, frac - mean, rho2, sub[_Z, j, ia], sub[_NR, j, ia],
                              sub[_NZ, j, ia], sub[_TR, j, ia], sub[_TZ, j, ia], cp2, sp2,
                              v1, v2, v3, w_force, w_area2, abs_omega, kn, kg, spin_sign,
