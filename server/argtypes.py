@@ -6,6 +6,9 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T", int, float)
 
 
 def float_at_least(minimum: float, inclusive: bool) -> Callable[[str], float]:
@@ -68,5 +71,25 @@ def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
         if value < minimum:
             raise argparse.ArgumentTypeError(f"{what} must be at least {minimum}, got {value}")
         return value
+
+    return parse
+
+
+def comma_separated(kind: type[T], in_range: Callable[[T], bool], plural: str, each: str,
+                    unit: str = "") -> Callable[[str], list[T]]:
+    """A non-empty comma-separated list of ``kind`` (int or float), each passing ``in_range``.
+    The messages: "PLURAL must be comma-separated …, got 'TEXT'" when an item does not parse,
+    "each EACH, got 'TEXT'" when one is out of range (``each`` says the range)."""
+    noun = ("integers" if kind is int else "numbers") + (f" in {unit}" if unit else "")
+
+    def parse(text: str) -> list[T]:
+        try:
+            values = [kind(part) for part in text.split(",") if part.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{plural} must be comma-separated {noun}, got {text!r}") from None
+        if not values or not all(in_range(v) for v in values):
+            raise argparse.ArgumentTypeError(f"each {each}, got {text!r}")
+        return values
 
     return parse

@@ -23,6 +23,22 @@ SUBPROTOCOL = "burrforce"
 _BEARER_PROTOCOL = "bearer."
 
 
+def query_int(text: str | None, name: str, default: int | None, lo: int, hi: int
+              ) -> int | None:
+    """A WebSocket query's integer ``name`` (``text``; None: ``default``), checked by hand:
+    FastAPI would refuse a bad one with a bare HTTP 403 before the handshake. ValueError says
+    what is wrong, for the close reason."""
+    if text is None:
+        return default
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"{name} must be an integer, got {text!r}") from None
+    if not lo <= value <= hi:
+        raise ValueError(f"{name} must be in {lo}..{hi}, got {value}")
+    return value
+
+
 def _offered(ws: WebSocket) -> list[str]:
     return [p.strip() for p in ws.headers.get("sec-websocket-protocol", "").split(",")
             if p.strip()]

@@ -26,7 +26,7 @@ from ..record import RecordingError
 from ..report import report_from_recording
 from .archive import TAR_MEDIA_TYPE
 from .deps import PlaneDep, SessionPath, wait_for
-from .errors import Conflict, Invalid, NotFound, TooLarge, Unavailable
+from .errors import Conflict, Invalid, NotFound, TooLarge
 from .generation import bone_generation
 from .models import (
     MAX_BONE_VERSION,
@@ -262,15 +262,8 @@ def deltas(plane: PlaneDep, session_id: int = SessionPath,
     if not session.features.deltas:
         raise Conflict("the session has deltas off")
     current = bone_generation(session)  # before the reader: generation.py
-    reader = session.reader
-    assert reader is not None
-    try:
-        d = reader.read_published(lambda grid: brick_delta(grid, since, max_bricks, current,
-                                                           generation))
-    except ValueError as exc:
-        raise Invalid(str(exc)) from None
-    except TimeoutError as exc:
-        raise Unavailable(str(exc)) from None
+    d = session.read_bone(lambda grid: brick_delta(grid, since, max_bricks, current,
+                                                   generation))
     return Response(encode_delta(d), media_type=DELTA_MEDIA_TYPE)
 
 

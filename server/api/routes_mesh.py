@@ -15,7 +15,7 @@ from fastapi.responses import Response
 from ...proto.mesh_chunks import FORMAT_VERSION, MEDIA_TYPE, encode
 from ..bone.chunks import CHUNK_BRICKS_DEFAULT, CHUNK_BRICKS_MAX
 from .deps import PlaneDep, SessionPath, get_plane
-from .errors import ApiError, Conflict, Invalid, Unavailable
+from .errors import ApiError, Conflict
 from .generation import bone_generation
 from .mesh_pages import (
     MAX_BYTES_DEFAULT,
@@ -30,6 +30,7 @@ from .push_sockets import (
     accept,
     admitted_session_id,
     close_reason,
+    query_int,
     release_socket_slot,
     take_socket_slot,
     watch_disconnect,
@@ -96,15 +97,7 @@ def mesh(plane: PlaneDep, session_id: int = SessionPath,
     if generation is not None and generation != current:
         since = None
     stamp = current if format_version >= 2 else None
-    reader = session.reader
-    assert reader is not None
-    try:
-        page = reader.read_published(lambda g: mesh_page(g, req, since, cursor, max_bytes,
-                                                         stamp))
-    except TimeoutError as exc:
-        raise Unavailable(str(exc)) from None
-    except ValueError as exc:
-        raise Invalid(str(exc)) from None
+    page = session.read_bone(lambda g: mesh_page(g, req, since, cursor, max_bytes, stamp))
     return Response(encode(page), media_type=MEDIA_TYPE)
 
 
@@ -125,16 +118,7 @@ class WsQuery:
     @classmethod
     def parse(cls, q) -> WsQuery:
         def integer(name: str, default: int | None, lo: int, hi: int) -> int | None:
-            text = q.get(name)
-            if text is None:
-                return default
-            try:
-                value = int(text)
-            except ValueError:
-                raise ValueError(f"{name} must be an integer, got {text!r}") from None
-            if not lo <= value <= hi:
-                raise ValueError(f"{name} must be in {lo}..{hi}, got {value}")
-            return value
+            return query_int(q.get(name), name, default, lo, hi)
 
         def choice(name: str, default: str, options: tuple[str, ...]) -> str:
             value = q.get(name, default)

@@ -115,18 +115,6 @@ def session_report(plane: PlaneDep, session_id: int = SessionPath,
     return report_response(report, format)
 
 
-def _hz(text: str | None) -> int:
-    if text is None:
-        return HZ_DEFAULT
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"hz must be an integer, got {text!r}") from None
-    if not HZ_MIN <= value <= HZ_MAX:
-        raise ValueError(f"hz must be in {HZ_MIN}..{HZ_MAX}, got {value}")
-    return value
-
-
 @ws_router.websocket("/sessions/{session_id}/telemetry/ws")
 async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     """Pushes the session's telemetry (JSON, as ``GET …/telemetry``) ``hz`` times a second
@@ -138,7 +126,7 @@ async def telemetry_ws(ws: WebSocket, session_id: str) -> None:
     # Accepted first: a close before the handshake reaches the client as a bare HTTP 403.
     await push_sockets.accept(ws)
     try:
-        hz = _hz(ws.query_params.get("hz"))
+        hz = push_sockets.query_int(ws.query_params.get("hz"), "hz", HZ_DEFAULT, HZ_MIN, HZ_MAX)
     except ValueError as exc:
         await ws.close(4422, push_sockets.close_reason(str(exc)))
         return

@@ -17,16 +17,20 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
 from ..bone import Bone, MaterialTable, ShaftParams
+from ..bone.grid import BoneGrid
 from ..bone.shared import SharedBone, SharedBoneRef
 from ..haptics import DeviceProfile, HapticsConfig
 from ..hotloop import SessionConfig
 from ..model.params import CuttingParams
 from ..model.vibration import VibrationParams
-from .errors import Busy, Conflict, NotFound, Unavailable
+from .errors import Busy, Conflict, Invalid, NotFound, Unavailable
 from .models import Features
 from .sources import BoneSource
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -154,6 +158,23 @@ class ManagedSession:
         bone.materials = self.materials.copy() if self.materials else bone.materials
         return bone
 
+
+    def read_bone(self, read: Callable[[BoneGrid], T]) -> T:
+        """What ``read`` makes of the bone the loop last published (``SharedBone``'s
+        ``read_published``; deltas on).
+
+        Raises:
+            Invalid: ``read`` refused its arguments (a ValueError).
+            Unavailable: the loop held a carving tick open too long.
+        """
+        reader = self.reader
+        assert reader is not None
+        try:
+            return reader.read_published(read)
+        except ValueError as exc:
+            raise Invalid(str(exc)) from None
+        except TimeoutError as exc:
+            raise Unavailable(str(exc)) from None
 
 class SessionTable:
     """Sessions by id; thread-safe. Reads return copies taken under the table's lock, so a

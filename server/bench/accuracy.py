@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..argtypes import float_in
+from ..argtypes import comma_separated, float_in
 from ..model import CuttingParams, thesis_cases
 from ..model.burr import DEFAULT_N_THETA
 from ..model.reference import reference_case
@@ -270,15 +270,8 @@ def plot(rows: list[AccuracyRow], path: Path, baseline: list[AccuracyRow] | None
 _voxel_size = float_in(0.02, 0.5, "voxel size", "mm")
 
 
-def _element_counts(text: str) -> tuple[int, ...]:
-    try:
-        counts = tuple(int(part) for part in text.split(",") if part.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"element counts must be comma-separated integers, got {text!r}") from None
-    if not counts or any(not 32 <= c <= 20000 for c in counts):
-        raise argparse.ArgumentTypeError(f"each element count must be in 32..20000, got {text}")
-    return counts
+_element_counts = comma_separated(int, lambda c: 32 <= c <= 20000, "element counts",
+                                 "element count must be in 32..20000")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

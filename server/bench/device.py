@@ -305,9 +305,7 @@ def write_results(rows: list[dict], out: Path) -> Path:
               "answering each usbfs call in Python (about 1.5–2.5 ms per exchange), so its "
               "rate here is the emulation's, not the driver's or a real Falcon's (unmeasured: "
               "no hardware)."]
-    path = out / "device.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return runner.write_page(out, "device", lines)
 
 
 def main(args: argparse.Namespace) -> int:

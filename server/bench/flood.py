@@ -195,9 +195,7 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
     for r in result["runs"]:
         c = {k: int(v) for k, v in r["server_counters"].items() if v}
         lines.append(f"- {r['kind']} x{r['senders']}: {c}")
-    md = out / "flood.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, js
+    return runner.write_page(out, "flood", lines), js
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

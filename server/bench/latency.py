@@ -65,6 +65,7 @@ from ...proto.messages import FLAG_RESET_VELOCITY, NEW_STREAM, STATUS_CUTTING, N
 from ...proto.tag import Tagger, new_key
 from ..argtypes import float_in, int_in
 from . import runner
+from .timing import wait_until
 
 MODES = ("echo", "overhead", "cutting", "blocking", "realtime", "watched", "minimal", "hogged",
          "hogged blocking", "hogged realtime")
@@ -116,6 +117,10 @@ class RunStats:
     p999_us: float
     max_us: float
     cutting_fraction: float | None = None
+
+    def quantiles(self, prefix: str, which: Sequence[str] = ("p50", "p99")) -> dict[str, float]:
+        """The result's fields for this run: ``PREFIXp50_us`` and so on, µs."""
+        return {f"{prefix}{q}_us": getattr(self, f"{q}_us") for q in which}
 
 
 def run_stats(mode: str, pacing: str, rtt_us: np.ndarray, lost: int,
@@ -199,11 +204,7 @@ class StreamClient:
         for i in range(n):
             if period_s is not None:
                 due += period_s
-                ahead = due - time.perf_counter()
-                if ahead > 0.0006:  # sleep most of it, spin the rest
-                    time.sleep(ahead - 0.0004)
-                while time.perf_counter() < due:
-                    pass
+                wait_until(due)
             t0 = clock()
             if self.session is None:
                 self.sock.send(self.echo_payload)
@@ -403,41 +404,29 @@ def run(samples_paced: int, samples_b2b: int, voxel_mm: float, rate_hz: float = 
     paced = {r.mode: r for r in results if r.pacing == "1 kHz"}
     b2b = {r.mode: r for r in results if r.pacing == "back-to-back"}
     return {
-        "echo_p50_us": paced["echo"].p50_us,
-        "echo_p99_us": paced["echo"].p99_us,
-        "overhead_p50_us": paced["overhead"].p50_us,
-        "overhead_p99_us": paced["overhead"].p99_us,
-        "p50_us": paced["cutting"].p50_us,
-        "p99_us": paced["cutting"].p99_us,
-        "p999_us": paced["cutting"].p999_us,
+        **paced["echo"].quantiles("echo_"),
+        **paced["overhead"].quantiles("overhead_"),
+        **paced["cutting"].quantiles("", ("p50", "p99", "p999")),
         "b2b_echo_p50_us": b2b["echo"].p50_us,
         "b2b_overhead_p50_us": b2b["overhead"].p50_us,
-        "b2b_p50_us": b2b["cutting"].p50_us,
-        "b2b_p99_us": b2b["cutting"].p99_us,
+        **b2b["cutting"].quantiles("b2b_"),
         "server_tick_p50_us": cutting["tick_p50_us"],
         "server_tick_p99_us": cutting["tick_p99_us"],
-        "blocking_p50_us": paced["blocking"].p50_us,
-        "blocking_p99_us": paced["blocking"].p99_us,
+        **paced["blocking"].quantiles("blocking_"),
         "b2b_blocking_p50_us": b2b["blocking"].p50_us,
         "server_tick_blocking_p50_us":
             server_blocking["sessions"][BLOCKING_SESSION]["tick_p50_us"],
-        "watched_p50_us": paced["watched"].p50_us,
-        "watched_p99_us": paced["watched"].p99_us,
+        **paced["watched"].quantiles("watched_"),
         "watch_hz": WATCH_HZ,
         "server_tick_watched_p50_us": watched["tick_p50_us"],
         "watched_samples": int(watched_samples) if watched_samples.isdigit() else None,
-        "minimal_p50_us": paced["minimal"].p50_us,
-        "minimal_p99_us": paced["minimal"].p99_us,
+        **paced["minimal"].quantiles("minimal_"),
         "server_tick_minimal_p50_us": minimal["tick_p50_us"],
         "server_tick_minimal_p99_us": minimal["tick_p99_us"],
-        "hogged_p50_us": paced["hogged"].p50_us,
-        "hogged_p99_us": paced["hogged"].p99_us,
-        "hogged_blocking_p50_us": paced["hogged blocking"].p50_us,
-        "hogged_blocking_p99_us": paced["hogged blocking"].p99_us,
-        "realtime_p50_us": paced["realtime"].p50_us,
-        "realtime_p99_us": paced["realtime"].p99_us,
-        "hogged_realtime_p50_us": paced["hogged realtime"].p50_us,
-        "hogged_realtime_p99_us": paced["hogged realtime"].p99_us,
+        **paced["hogged"].quantiles("hogged_"),
+        **paced["hogged blocking"].quantiles("hogged_blocking_"),
+        **paced["realtime"].quantiles("realtime_"),
+        **paced["hogged realtime"].quantiles("hogged_realtime_"),
         "realtime_granted": realtime_granted,
         "hogged_wake_counters": {name: value for name, value
                                  in server_hogged["counters"].items()
@@ -547,11 +536,7 @@ def write_results(result: dict, out: Path,
         "",
         f"Server counters: {json.dumps(result['server_counters'])}",
     ]
-    lines += page_lines
-    lines.append("")
-    md_path = out / "latency.md"
-    md_path.write_text("\n".join(lines))
-    return md_path, json_path
+    return runner.write_page(out, "latency", [*lines, *page_lines]), json_path
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

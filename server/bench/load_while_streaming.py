@@ -30,6 +30,7 @@ import numpy as np
 from ...proto.tag import new_key
 from ..argtypes import float_in, int_in
 from . import runner
+from .timing import wait_until
 
 STREAM_SESSION = 1
 LOAD_SESSION = 2
@@ -69,11 +70,7 @@ def stream(host: str, port: int, key: bytes, seconds: float, rate_hz: float,
     i = 0
     while i < len(rows) and not stopped:
         due += period
-        ahead = due - time.perf_counter()
-        if ahead > 0.0006:  # sleep most of it, spin the rest
-            time.sleep(ahead - 0.0004)
-        while time.perf_counter() < due:
-            pass
+        wait_until(due)
         t0 = clock()
         client.sock.send(client.datagram(t0 // 1000, i == 0))
         rtt = float("nan")
@@ -232,11 +229,8 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"per load, µs: {result['max_per_load_us']}.",
         "",
         f"Server counters: {json.dumps(result['server_counters'])}",
-        "",
     ]
-    md_path = out / "load-while-streaming.md"
-    md_path.write_text("\n".join(lines))
-    return md_path, json_path
+    return runner.write_page(out, "load-while-streaming", lines), json_path
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -225,10 +225,7 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
                          f"| {r['copies']} | {r['latency_ms_p50']:.0f} | "
                          f"{r['latency_ms_p95']:.0f} | {r['latency_ms_max']:.0f} | "
                          f"{'yes' if r['caught_up'] else 'NO'} |")
-    lines.append("")
-    md = out / "mesh.md"
-    md.write_text("\n".join(lines))
-    return md, js
+    return runner.write_page(out, "mesh", lines), js
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

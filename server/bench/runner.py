@@ -69,6 +69,13 @@ def save_json(out: Path, name: str, result: dict, utc: bool = False) -> tuple[di
     return result, path
 
 
+def write_page(out: Path, name: str, lines: Sequence[str]) -> Path:
+    """Write OUT/NAME.md: ``lines``, each ending in a newline. Returns its path."""
+    path = out / f"{name}.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def report(args: argparse.Namespace, page: Path, *others: Path, rows: Any = None,
            indent: int = 2) -> int:
     """Print the results (``rows`` as JSON with ``--json``, else the markdown ``page``), then

@@ -48,7 +48,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-from ..argtypes import float_in, int_at_least
+from ..argtypes import comma_separated, float_in, int_at_least
 from . import runner
 from .latency import ALPHA_DEG, DEPTH_MM, FEED_MM_S, RPM
 from .serve_process import spawn_serve
@@ -259,20 +259,11 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
             f"{_f(r['rtt_p99_us'])} | {_f(r['rtt_p999_us'])} | {r['lost']} | {r['late']} | "
             f"{_f(r['server_cpu_per_session_pct'], '.1f')} | {r['generator_cpu_pct']:.0f} | "
             f"{_f(r['send_late_p99_us'])} |")
-    md = out / "sessions.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, js
+    return runner.write_page(out, "sessions", lines), js
 
 
-def _counts(text: str) -> list[int]:
-    try:
-        values = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"session counts must be comma-separated integers, got {text!r}") from None
-    if not values or any(not 1 <= v <= 256 for v in values):
-        raise argparse.ArgumentTypeError(f"each session count must be in 1..256, got {text!r}")
-    return values
+_counts = comma_separated(int, lambda n: 1 <= n <= 256, "session counts",
+                         "session count must be in 1..256")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

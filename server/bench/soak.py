@@ -333,9 +333,7 @@ def write_results(result: dict, out: Path) -> tuple[Path, Path]:
         f"{r['rest']['ops']} operations, {r['rest']['errors']} errors"
         + (f" (last: {r['rest']['last_error']})" if r["rest"]["errors"] else "") + ".",
     ]
-    md = out / "soak.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, js
+    return runner.write_page(out, "soak", lines), js
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -291,10 +291,7 @@ def write_results(rows: list[dict], settings: dict, out: Path) -> tuple[Path, Pa
     for r in rows:
         cells = [_fmt(r[k]) for k, _ in ROW_COLUMNS]
         lines.append("| " + " | ".join(cells) + " |")
-    lines.append("")
-    md_path = out / "stability.md"
-    md_path.write_text("\n".join(lines))
-    return md_path, json_path, png_path
+    return runner.write_page(out, "stability", lines), json_path, png_path
 
 
 def plot_map(rows: list[dict], path: Path) -> None:

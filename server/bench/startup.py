@@ -168,10 +168,7 @@ def write_results(result: dict, out: Path, note: str = "") -> tuple[Path, Path]:
             f"{c['warm_kernels_saved']} |")
     if note:
         lines += ["", note]
-    lines.append("")
-    md = out / "startup.md"
-    md.write_text("\n".join(lines))
-    return md, js
+    return runner.write_page(out, "startup", lines), js
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -52,6 +52,16 @@ def sample_calls(calls: list[Callable[[], object]], repeats: int) -> np.ndarray:
     return samples
 
 
+def wait_until(due_s: float) -> None:
+    """Return once ``time.perf_counter()`` reaches ``due_s``: sleep most of the wait, then spin
+    the last 0.4 ms or so, which a sleep would overshoot (a paced stream's send times)."""
+    ahead = due_s - time.perf_counter()
+    if ahead > 0.0006:
+        time.sleep(ahead - 0.0004)
+    while time.perf_counter() < due_s:
+        pass
+
+
 def summarize(samples_ns: np.ndarray) -> Timing:
     us = samples_ns / 1e3
     return Timing(float(np.median(us)), float(np.percentile(us, 99)), len(us))

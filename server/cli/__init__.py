@@ -9,22 +9,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .. import __version__, compile_cache
-from ..argtypes import float_at_least, int_in
+from ..argtypes import comma_separated, float_at_least, int_in
 
 _positive_float = float_at_least(0.0, inclusive=False)
 _non_negative_float = float_at_least(0.0, inclusive=True)
 _elements = int_in(8, 1_000_000, "element count")
-
-
-def _angles(text: str) -> list[float]:
-    try:
-        values = [float(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"angles must be comma-separated numbers in degrees, got {text!r}") from None
-    if not values or any(not 0.0 < v <= 90.0 for v in values):
-        raise argparse.ArgumentTypeError(f"each angle must be in (0, 90] degrees, got {text!r}")
-    return values
+_angles = comma_separated(float, lambda deg: 0.0 < deg <= 90.0, "angles",
+                          "angle must be in (0, 90] degrees", unit="degrees")
 
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
@@ -106,54 +97,6 @@ def _run_experiment(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_bone(sub: argparse._SubParsersAction) -> None:
-    from . import bone as cli_bone
-
-    cli_bone.add_parser(sub)
-
-
-def _add_replay(sub: argparse._SubParsersAction) -> None:
-    from . import replay as cli_replay
-
-    cli_replay.add_parser(sub)
-
-
-def _add_report(sub: argparse._SubParsersAction) -> None:
-    from . import report as cli_report
-
-    cli_report.add_parser(sub)
-
-
-def _add_serve(sub: argparse._SubParsersAction) -> None:
-    from . import serve as cli_serve
-
-    cli_serve.add_parser(sub)
-
-
-def _add_device(sub: argparse._SubParsersAction) -> None:
-    from . import device as cli_device
-
-    cli_device.add_parser(sub)
-
-
-def _add_client(sub: argparse._SubParsersAction) -> None:
-    from . import client_demo
-
-    client_demo.add_parser(sub)
-
-
-def _add_calibrate(sub: argparse._SubParsersAction) -> None:
-    from . import calibrate as cli_calibrate
-
-    cli_calibrate.add_parser(sub)
-
-
-def _add_compile(sub: argparse._SubParsersAction) -> None:
-    from . import compile as cli_compile
-
-    cli_compile.add_parser(sub)
-
-
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks of this machine that write results files",
                        description="Benchmarks a user runs on their own machine and "
@@ -174,18 +117,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     from ..bench import stability as bench_stability
     from ..bench import startup as bench_startup
 
-    bench_model.add_parser(bench_sub)
-    bench_accuracy.add_parser(bench_sub)
-    bench_load.add_parser(bench_sub)
-    bench_load_while_streaming.add_parser(bench_sub)
-    bench_latency.add_parser(bench_sub)
-    bench_stability.add_parser(bench_sub)
-    bench_device.add_parser(bench_sub)
-    bench_mesh.add_parser(bench_sub)
-    bench_flood.add_parser(bench_sub)
-    bench_soak.add_parser(bench_sub)
-    bench_sessions.add_parser(bench_sub)
-    bench_startup.add_parser(bench_sub)
+    for bench in (bench_model, bench_accuracy, bench_load, bench_load_while_streaming,
+                  bench_latency, bench_stability, bench_device, bench_mesh, bench_flood,
+                  bench_soak, bench_sessions, bench_startup):  # the order BENCH lists them
+        bench.add_parser(bench_sub)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -195,16 +130,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"burrforce {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    _add_experiment(sub)
-    _add_calibrate(sub)
-    _add_bone(sub)
-    _add_serve(sub)
-    _add_compile(sub)
-    _add_client(sub)
-    _add_device(sub)
-    _add_bench(sub)
-    _add_replay(sub)
-    _add_report(sub)
+    # Imported here, not at the top: main configures numba's cache before any of them loads it.
+    from . import bone as cli_bone
+    from . import calibrate as cli_calibrate
+    from . import client_demo as cli_client
+    from . import compile as cli_compile
+    from . import device as cli_device
+    from . import replay as cli_replay
+    from . import report as cli_report
+    from . import serve as cli_serve
+
+    for add_parser in (_add_experiment, cli_calibrate.add_parser, cli_bone.add_parser,
+                       cli_serve.add_parser, cli_compile.add_parser, cli_client.add_parser,
+                       cli_device.add_parser, _add_bench, cli_replay.add_parser,
+                       cli_report.add_parser):  # the order COMMAND lists them
+        add_parser(sub)
     return parser
 
 

@@ -21,6 +21,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
@@ -108,16 +109,14 @@ class DeviceState:
     rotation: np.ndarray | None = field(default=None)
 
 
-class HapticDevice(ABC):
-    """A haptic device back-end. Use as a context manager: ``close`` always zeroes the force.
+_Output = TypeVar("_Output", bound="SafeOutput")
 
-    Subclasses set :attr:`info` and implement :meth:`_open`, :meth:`cycle`, :meth:`_close`;
-    :meth:`home` defaults to "nothing to home". A constructor only checks its options (the
-    server builds a back-end once to refuse bad ones before starting a device process);
-    :meth:`open` is where the hardware or vendor library is touched.
-    """
 
-    info: DeviceInfo
+class SafeOutput(ABC):
+    """Hardware that is opened once and left safe when closed (a haptic device: zero force;
+    an actuator: silence). ``close`` makes it safe (:meth:`_make_safe`), then releases it
+    (:meth:`_close`); an ``open`` that fails or is stopped part-way releases whatever the
+    back-end got to. Use as a context manager."""
 
     def __init__(self) -> None:
         self._opened = False
@@ -127,8 +126,7 @@ class HapticDevice(ABC):
         return self._opened
 
     def open(self) -> None:
-        """Connect to the device (raises DeviceNotFound, DeviceAccessDenied,
-        VendorLibraryMissing or DeviceError with what to do)."""
+        """Acquire the hardware (raises the DeviceError family with what to do)."""
         if not self._opened:
             try:
                 self._open()
@@ -138,6 +136,47 @@ class HapticDevice(ABC):
                 # whatever the back-end got to; its error is the one to report.
                 release_after_failed_open(self._close)
                 raise
+
+    def close(self) -> None:
+        """Make the output safe and release it. Safe to call twice."""
+        if self._opened:
+            try:
+                self._make_safe()
+            finally:
+                self._opened = False
+                self._close()
+
+    @abstractmethod
+    def _make_safe(self) -> None:
+        """Leave the output harmless (best effort: never raises)."""
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Acquire the hardware."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Release what ``_open`` acquired. Also called when ``_open`` raised part-way, so it
+        must release only what is there (and be safe to call twice)."""
+
+    def __enter__(self: _Output) -> _Output:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class HapticDevice(SafeOutput):
+    """A haptic device back-end. Use as a context manager: ``close`` always zeroes the force.
+
+    Subclasses set :attr:`info` and implement :meth:`_open`, :meth:`cycle`, :meth:`_close`;
+    :meth:`home` defaults to "nothing to home". A constructor only checks its options (the
+    server builds a back-end once to refuse bad ones before starting a device process);
+    :meth:`open` is where the hardware or vendor library is touched.
+    """
+
+    info: DeviceInfo
 
     def home(self, timeout_s: float = 30.0,
              progress: Callable[[str], None] | None = None,
@@ -163,29 +202,14 @@ class HapticDevice(ABC):
         except Exception:  # the device may already be gone
             pass
 
-    def close(self) -> None:
-        """Zero the force and release the device. Safe to call twice. (An ``open`` that
-        failed or was stopped part-way has released what it had by itself.)"""
-        if self._opened:
-            try:
-                self.zero()
-            finally:
-                self._opened = False
-                self._close()
+    def _make_safe(self) -> None:
+        self.zero()  # close: zero the force, then release the device
 
-    def _open(self) -> None:  # noqa: B027 — a hook: most back-ends connect here
+    def _open(self) -> None:  # a hook: most back-ends connect here
         pass
 
-    def _close(self) -> None:  # noqa: B027 — a hook: most back-ends release here
-        """Release what ``_open`` acquired. Also called when ``_open`` raised part-way, so it
-        must release only what is there (and be safe to call twice)."""
-
-    def __enter__(self) -> HapticDevice:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _close(self) -> None:  # a hook: most back-ends release here
+        pass
 
 
 def clamp_force(force_N: np.ndarray, max_force_N: float) -> tuple[np.ndarray, bool]:

@@ -24,25 +24,20 @@ from ...proto.messages import (
     OK,
     STALE,
     STATUS_CLAMPED,
-    STATUS_CONTACT,
-    STATUS_CUTTING,
-    STATUS_FORBIDDEN,
-    STATUS_SHAFT_CONTACT,
     Pose,
 )
 from ...proto.sequence import seq_after
 from ...proto.tag import Tagger
 from ..bone.carve import TOUCH_FORBIDDEN
+from ..bone.contact_status import contact_status
 from ..bone.engine import BoneEngine
-from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
+from ..bone.shaft import SHAFT_FORCE, SHAFT_TORQUE
 from ..haptics.coupling import CLAMPED, PLACED, coupled_finish, coupled_predict, raw_limits
 from ..haptics.layout import P_SHAFT_RADIUS, S_PERIOD
 from ..haptics.stage import HapticStage
 from ..haptics.transition import cut_weight
 from ..model.kernels import (
     OUT_COMPONENTS,
-    OUT_CONTACT_AREA,
-    OUT_COUNT,
     OUT_FORCE,
     OUT_POWER,
     OUT_TORQUE,
@@ -453,17 +448,10 @@ class Session:
             self.ticks_timed += 1
             out = engine.out.tolist()
             shaft = engine.shaft_out.tolist()
-            if engine.touch[TOUCH_FORBIDDEN] > 0.0:
-                status |= STATUS_FORBIDDEN
+            status |= contact_status(engine.out, engine.shaft_out, engine.touch[TOUCH_FORBIDDEN])
             engine.record_contact(t_recv_ns * 1e-9)
             if removed:
                 removed_mm3 = engine.removed_this_tick_mm3()
-            if out[OUT_COUNT] > 0.0:
-                status |= STATUS_CUTTING
-            if out[OUT_CONTACT_AREA] > 0.0:
-                status |= STATUS_CONTACT
-            if shaft[SHAFT_VOLUME] > 0.0 or shaft[SHAFT_DEPTH] > 0.0:
-                status |= STATUS_SHAFT_CONTACT
             fx, fy, fz = out[OUT_FORCE:OUT_FORCE + 3]
             tx, ty, tz = out[OUT_TORQUE:OUT_TORQUE + 3]
             resistive = out[OUT_COMPONENTS:OUT_COMPONENTS + 3]

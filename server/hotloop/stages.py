@@ -30,21 +30,16 @@ import numpy as np
 from ...proto.messages import (
     FLAG_RESET_VELOCITY,
     OK,
-    STATUS_CONTACT,
-    STATUS_CUTTING,
-    STATUS_FORBIDDEN,
-    STATUS_SHAFT_CONTACT,
     STATUS_SLOW_SPINDLE,
     STATUS_STALE,
 )
 from ..bone.carve import TOUCH_FORBIDDEN
-from ..bone.shaft import SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
+from ..bone.contact_status import contact_status
+from ..bone.shaft import SHAFT_FORCE, SHAFT_TORQUE
 from ..haptics.velocity import RING, reset, velocity_step
 from ..hot_kernel import hot_kernel
 from ..model.kernels import (
     OUT_COMPONENTS,
-    OUT_CONTACT_AREA,
-    OUT_COUNT,
     OUT_FORCE,
     OUT_POWER,
     OUT_TORQUE,
@@ -289,6 +284,20 @@ def _out3(k, x, y, z, reply_f, at, factor):
 
 
 @hot_kernel
+def _reply_ints(reply_i, m, pose_i, error, status, t_recv_us, t_send_us, bone_version):
+    """A REPLY's integers (wire R_*): the session and the pose answered, the server's clock
+    at receipt and send (µs), the error code, the status bits and the bone's version."""
+    reply_i[R_SESSION] = m[M_SESSION]
+    reply_i[R_SEQ] = pose_i[P_SEQ]
+    reply_i[R_T_CLIENT] = pose_i[P_T_CLIENT]
+    reply_i[R_T_RECV] = t_recv_us
+    reply_i[R_T_SEND] = t_send_us
+    reply_i[R_ERROR] = error
+    reply_i[R_STATUS] = status
+    reply_i[R_BONE_VERSION] = bone_version
+
+
+@hot_kernel
 def reply_raw(k, m, pose_i, out, shaft_out, touch, tx, removed_mm3, t_recv_us, t_send_us,
               bone_version):
     """The raw output of a tick in the engine frame, encoded into ``tx``; returns its length.
@@ -308,14 +317,7 @@ def reply_raw(k, m, pose_i, out, shaft_out, touch, tx, removed_mm3, t_recv_us, t
     for i in range(R_FORCE, R_FEED + 3):
         reply_f[i] = 0.0
     if flags & RAW_MODEL:
-        if touch[TOUCH_FORBIDDEN] > 0.0:
-            status |= STATUS_FORBIDDEN
-        if out[OUT_COUNT] > 0.0:
-            status |= STATUS_CUTTING
-        if out[OUT_CONTACT_AREA] > 0.0:
-            status |= STATUS_CONTACT
-        if shaft_out[SHAFT_VOLUME] > 0.0 or shaft_out[SHAFT_DEPTH] > 0.0:
-            status |= STATUS_SHAFT_CONTACT
+        status |= contact_status(out, shaft_out, touch[TOUCH_FORBIDDEN])
         fx, fy, fz = out[OUT_FORCE], out[OUT_FORCE + 1], out[OUT_FORCE + 2]
         for i in range(3):
             reply_f[R_RESISTIVE + i] = out[OUT_COMPONENTS + i]
@@ -344,14 +346,7 @@ def reply_raw(k, m, pose_i, out, shaft_out, touch, tx, removed_mm3, t_recv_us, t
     reply_f[R_REMOVED] = removed_mm3
     f0, f1, f2 = reply_f[R_FORCE], reply_f[R_FORCE + 1], reply_f[R_FORCE + 2]
     k[W_LAST_FORCE] = math.sqrt(f0 ** 2 + f1 ** 2 + f2 ** 2)
-    reply_i[R_SESSION] = m[M_SESSION]
-    reply_i[R_SEQ] = pose_i[P_SEQ]
-    reply_i[R_T_CLIENT] = pose_i[P_T_CLIENT]
-    reply_i[R_T_RECV] = t_recv_us
-    reply_i[R_T_SEND] = t_send_us
-    reply_i[R_ERROR] = OK
-    reply_i[R_STATUS] = status
-    reply_i[R_BONE_VERSION] = bone_version
+    _reply_ints(reply_i, m, pose_i, OK, status, t_recv_us, t_send_us, bone_version)
     return encode_reply_into(tx, reply_i, reply_f, flags & RAW_TAGGED != 0)
 
 
@@ -363,13 +358,6 @@ def reply_error(k, m, pose_i, error, t_recv_us, t_send_us, bone_version, tx):
     reply_i = m[M_REPLY:M_REPLY + REPLY_INTS]
     for i in range(REPLY_FLOATS):
         reply_f[i] = 0.0
-    reply_i[R_SESSION] = m[M_SESSION]
-    reply_i[R_SEQ] = pose_i[P_SEQ]
-    reply_i[R_T_CLIENT] = pose_i[P_T_CLIENT]
-    reply_i[R_T_RECV] = t_recv_us
-    reply_i[R_T_SEND] = t_send_us
-    reply_i[R_ERROR] = error
-    reply_i[R_STATUS] = 0
-    reply_i[R_BONE_VERSION] = bone_version
+    _reply_ints(reply_i, m, pose_i, error, 0, t_recv_us, t_send_us, bone_version)
     return encode_reply_into(tx, reply_i, reply_f, m[M_FLAGS] & RAW_TAGGED != 0)
 

@@ -27,11 +27,12 @@ from ...proto.messages import (
 )
 from ..bone.bone import Bone
 from ..bone.carve import TOUCH_FORBIDDEN
+from ..bone.contact_status import contact_status
 from ..bone.engine import BoneEngine, ShaftParams
 from ..bone.loaders import BoneFileError, load_bone
 from ..bone.materials import Material, MaterialTable
-from ..bone.shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
-from ..model.kernels import N_OUT, OUT_CONTACT_AREA, OUT_COUNT, OUT_FORCE, OUT_POWER, OUT_TORQUE
+from ..bone.shaft import N_SHAFT, SHAFT_FORCE, SHAFT_TORQUE
+from ..model.kernels import N_OUT, OUT_FORCE, OUT_POWER, OUT_TORQUE
 from ..model.params import CuttingParams
 from .format import (
     REC_CARVE_RESET,
@@ -250,20 +251,14 @@ def replay(
             engine.forget_last_carve()
         removed = engine.step_raw(centre[i], axis[i], feed[i], rpm[i], carve[i])
         # The session's tick, from here on, as Session._tick computes it.
-        st = STATUS_FORBIDDEN if engine.touch[TOUCH_FORBIDDEN] > 0.0 else 0
+        o = engine.out.tolist()
+        s = engine.shaft_out.tolist()
+        st = contact_status(engine.out, engine.shaft_out, engine.touch[TOUCH_FORBIDDEN])
         engine.record_contact(t_recv[i] * 1e-9)
         if removed:
             removed_tick[i] = engine.removed_this_tick_mm3()
-        o = engine.out.tolist()
-        s = engine.shaft_out.tolist()
         out[i] = engine.out
         shaft[i] = engine.shaft_out
-        if o[OUT_COUNT] > 0.0:
-            st |= STATUS_CUTTING
-        if o[OUT_CONTACT_AREA] > 0.0:
-            st |= STATUS_CONTACT
-        if s[SHAFT_VOLUME] > 0.0 or s[SHAFT_DEPTH] > 0.0:
-            st |= STATUS_SHAFT_CONTACT
         fx, fy, fz = o[OUT_FORCE:OUT_FORCE + 3]
         sx, sy, sz = s[SHAFT_FORCE:SHAFT_FORCE + 3]
         force[i] = tf.direction_out((fx + sx, fy + sy, fz + sz))

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import math
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 
-from ..base import release_after_failed_open
+from ..base import SafeOutput
 
 WATCHDOG_DEFAULT_MS = 50.0
 
@@ -74,7 +74,7 @@ class ActuatorStats:
     last_t_ns: int = 0
 
 
-class Actuator(ABC):
+class Actuator(SafeOutput):
     """A vibration actuator. Use as a context manager: ``close`` always leaves it silent.
 
     Subclasses implement :meth:`_open`, :meth:`_set` (store the new target: cheap, never
@@ -89,22 +89,13 @@ class Actuator(ABC):
         self.amplitude_map = AmplitudeMap(full_scale_N)
         self.watchdog_ns = int(watchdog_ms * 1e6)
         self.stats = ActuatorStats()
-        self._opened = False
-
-    @property
-    def is_open(self) -> bool:
-        return self._opened
+        super().__init__()
 
     def open(self) -> None:
         """Start the output, silent (raises the DeviceError family with what to do)."""
-        if not self._opened:
+        if not self.is_open:
             self.stats = ActuatorStats()
-            try:
-                self._open()
-                self._opened = True
-            except BaseException:
-                release_after_failed_open(self._close)  # whatever _open got to
-                raise
+        super().open()
 
     def update(self, amplitude_N: float, frequency_hz: float, t_ns: int | None = None) -> None:
         """Render ``amplitude_N`` (N) at ``frequency_hz`` (Hz) from now on.
@@ -115,7 +106,7 @@ class Actuator(ABC):
         ``t_ns`` as its timeline. Bad values (non-finite, negative) silence the actuator and
         raise ValueError; so does an update on a closed actuator (RuntimeError).
         """
-        if not self._opened:
+        if not self.is_open:
             raise RuntimeError("actuator is not open")
         try:
             check_parameters(amplitude_N, frequency_hz)
@@ -132,20 +123,14 @@ class Actuator(ABC):
 
     def silence(self) -> None:
         """Ramp to silence now (best effort: never raises)."""
-        if self._opened:
+        if self.is_open:
             try:
                 self._silence()
             except Exception:  # the output may already be gone
                 pass
 
-    def close(self) -> None:
-        """Silence and release the output. Safe to call twice."""
-        if self._opened:
-            try:
-                self.silence()
-            finally:
-                self._opened = False
-                self._close()
+    def _make_safe(self) -> None:
+        self.silence()  # close: silence, then release the output
 
     @abstractmethod
     def _set(self, level: float, frequency_hz: float, t_ns: int, arrival_ns: int) -> None:
@@ -164,9 +149,3 @@ class Actuator(ABC):
         """Release the output (after :meth:`_silence`). Also called when ``_open`` raised
         part-way: release only what is there (and be safe to call twice)."""
 
-    def __enter__(self) -> Actuator:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

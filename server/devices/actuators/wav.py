@@ -135,7 +135,7 @@ class WavActuator(Actuator):
 
     def advance(self, t_ns: int) -> None:
         """Extend the file to ``t_ns`` without new parameters (the watchdog applies)."""
-        if not self._opened:
+        if not self.is_open:
             raise RuntimeError("actuator is not open")
         if self._t_first is not None and t_ns < self._last_t:
             raise ValueError(f"t_ns went backwards: {t_ns} < {self._last_t}")
