@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from burrforce.server.bench.accuracy import oblique_rotation
 from burrforce.server.bone import BoneGrid, Material, MaterialTable, workpiece_block
 from burrforce.server.bone.bricks import EMPTY, FULL, MIXED
+from burrforce.server.bone.orthonormal import ROUND_OFF, gram_error, nearest_orthonormal
 
 
 def test_workpiece_volume_is_exact_aligned_and_oblique():
@@ -115,3 +120,69 @@ def test_material_table():
     table.remove(7)
     assert 7 not in table and table.us[7] == 0.0
     assert table.name_of(9) == "label 9"
+
+
+# -- directions: kept bit for bit when orthonormal, snapped the same on every BLAS ------------
+
+#: Run in a child process per OpenBLAS setting: saves and reloads an oblique grid whose
+#: direction is orthonormal to round-off, and one whose direction was rounded to 7 decimals (as
+#: files store it), and prints each direction's bytes after building and after reloading.
+_ROUND_TRIP = """
+import sys
+from pathlib import Path
+import numpy as np
+from burrforce.server.bone import Bone, BoneGrid, MaterialTable, load_bone, save_bone
+from burrforce.server.bone.materials import CORTICAL
+
+a, b = np.radians(20.0), np.radians(-35.0)
+ca, sa, cb, sb = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+# Rz(a)·Ry(b) written out element by element: no matrix product, so no BLAS in the input.
+exact = np.array([[ca * cb, -sa, ca * sb], [sa * cb, ca, sa * sb], [-sb, 0.0, cb]])
+for name, direction in (("exact", exact), ("rounded", np.round(exact, 7))):
+    grid = BoneGrid(np.full((3, 4, 5), 128, np.uint8), 0.2, (1.0, 2.0, 3.0), direction)
+    path = save_bone(Bone(grid, MaterialTable({1: CORTICAL})), Path(sys.argv[1]) / name)
+    again = load_bone(path).grid.direction
+    print(name, grid.direction.tobytes().hex(), again.tobytes().hex(), direction.tobytes().hex())
+"""
+
+
+def _round_trip(tmp_path, coretype: str | None) -> dict[str, list[str]]:
+    # The child's environment only: this process's and CI's OpenBLAS settings stay as they are.
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+    if coretype:
+        env["OPENBLAS_CORETYPE"] = coretype
+    folder = tmp_path / (coretype or "default")
+    folder.mkdir()
+    out = subprocess.run([sys.executable, "-c", _ROUND_TRIP, str(folder)], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    return {line.split()[0]: line.split()[1:] for line in out.stdout.splitlines()}
+
+
+def test_saved_direction_reloads_bit_for_bit_on_any_blas(tmp_path):
+    """The compact format's round trip failed by 1 ulp with OPENBLAS_CORETYPE=Haswell when
+    every direction was re-orthonormalised by an SVD (issue 42)."""
+    runs = {coretype: _round_trip(tmp_path, coretype) for coretype in (None, "Haswell")}
+    for rows in runs.values():
+        built, reloaded, given = rows["exact"]
+        assert built == reloaded == given  # orthonormal to round-off: kept as it is
+        built, reloaded, given = rows["rounded"]
+        assert built == reloaded != given  # snapped once, then kept
+        snapped = np.frombuffer(bytes.fromhex(built)).reshape(3, 3)
+        assert np.abs(snapped.T @ snapped - np.eye(3)).max() < 1e-14
+    # The snap uses no BLAS: the same bits whichever kernel ran it.
+    assert runs[None] == runs["Haswell"]
+
+
+def test_nearest_orthonormal_keeps_round_off_and_snaps_the_rest():
+    rot = oblique_rotation()
+    assert nearest_orthonormal(rot) is rot
+    rounded = np.round(rot, 4)
+    snapped = nearest_orthonormal(rounded)
+    assert gram_error(snapped) <= ROUND_OFF
+    assert nearest_orthonormal(snapped) is snapped
+    np.testing.assert_allclose(snapped, rot, atol=1e-4)
+    reflected = rounded * np.array([-1.0, 1.0, 1.0])
+    assert np.linalg.det(nearest_orthonormal(reflected)) == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="singular"):
+        nearest_orthonormal(np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))

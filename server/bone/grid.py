@@ -35,6 +35,7 @@ from .bricks import (
     voxels_per_brick,
 )
 from .materials import CORTICAL_LABEL, N_LABELS
+from .orthonormal import nearest_orthonormal
 
 MIN_SPACING_MM = 1e-3
 MAX_SPACING_MM = 100.0
@@ -247,9 +248,9 @@ def rotation(direction: object) -> np.ndarray:
     if np.linalg.det(arr) < 0.0:
         raise ValueError("direction is a reflection (det −1): flip one array axis and its "
                          "direction column to make the grid right-handed")
-    # Re-orthonormalise so round-off in a loaded file cannot skew forces.
-    u, _, vt = np.linalg.svd(arr)
-    return u @ vt
+    # Rounding in a file must not skew forces; a direction already orthonormal is kept bit for
+    # bit, so a saved grid reloads exactly (on any BLAS).
+    return nearest_orthonormal(arr)
 
 
 def check_voxel_size(spacing_mm: np.ndarray, radius_mm: float) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..orthonormal import nearest_orthonormal
 from .errors import BoneFileError
 
 #: Millimetres per unit of length, for the unit strings files carry.
@@ -73,8 +74,8 @@ def from_axes(path: Path, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                   "rectilinear grid first")
     # Files store directions to a few decimals: snap to the nearest orthonormal matrix (the
     # polar factor keeps the determinant's sign), so a rounded rotation is still a rotation.
-    u, _, vt = np.linalg.svd(direction)
-    return spacing, u @ vt
+    # One stored in full is kept as it is, so a written grid reads back the same.
+    return spacing, nearest_orthonormal(direction)
 
 
 def make_right_handed(
