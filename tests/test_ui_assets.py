@@ -1,7 +1,7 @@
-"""The live view's third-party files: locked, fetched from an npm registry, verified, shipped.
+"""The live view's third-party files: committed, locked, verified, shipped; refreshed from npm.
 
 The fetches here go to a registry served on 127.0.0.1 (``BURRFORCE_NPM_REGISTRY``), never to
-npm's; only the wheel build may reach it, and only if the source tree lacks the files.
+npm's; the wheel build makes none (the files are in the source tree).
 """
 
 from __future__ import annotations
@@ -177,6 +177,26 @@ def test_fetch_verifies_writes_and_then_stays_offline(registry, tmp_path):
     assert vendor.check(target, lock) == []
 
 
+def test_relock_records_a_new_release_after_checking_its_integrity(registry, tmp_path):
+    # The maintainer's refresh: the lock names a new tarball and its integrity, the files'
+    # sha256 are still the old release's; relock writes the files and records theirs.
+    release = _tarball({"package/dist/fake.js": b"export const answer = 43;\n",
+                        "package/LICENSE": LICENSE})
+    registry.routes["/fake/-/fake-1.0.0.tgz"] = release
+    lock = _lock(tmp_path / "lock.json", release)
+    target = tmp_path / "vendor"
+    with pytest.raises(vendor.VendorError, match="sha256"):
+        vendor.fetch(target, lock, log=lambda _: None)
+    assert vendor.relock(target, lock, log=lambda _: None) == ["fake/fake.js"]
+    assert vendor.check(target, lock) == []
+    assert (target / "fake" / "fake.js").read_bytes() == b"export const answer = 43;\n"
+    # The registry's integrity stays the anchor: a tarball that differs from it writes nothing.
+    registry.routes["/fake/-/fake-1.0.0.tgz"] = GOOD
+    with pytest.raises(vendor.VendorError, match="integrity"):
+        vendor.relock(tmp_path / "other", lock, log=lambda _: None)
+    assert _tree(tmp_path / "other") == []
+
+
 def test_tampered_tarball_is_refused_and_nothing_written(registry, tmp_path):
     registry.routes["/fake/-/fake-1.0.0.tgz"] = _tarball(
         {"package/dist/fake.js": b"alert('owned')", "package/LICENSE": LICENSE})
@@ -267,7 +287,7 @@ def test_accepted_target_paths_stay_inside(parts):
 
 def test_wheel_ships_the_lock_and_the_vendor_files(tmp_path):
     # With build isolation: pyproject's SPDX `license` needs setuptools>=77 (the virtualenv's
-    # may be older). The source tree already holds the files, so no npm request is made.
+    # may be older). The files are committed: the build makes no npm request.
     static = ROOT / "server" / "ui" / "static"
     pages = {f"burrforce/server/ui/static/{p.relative_to(static).as_posix()}"
              for p in static.rglob("*") if p.suffix in (".html", ".js", ".css", ".svg")}

@@ -38,10 +38,10 @@ def _page() -> tuple[str, str]:
 
 def add_ui_pages(app: FastAPI) -> None:
     """Serve ``/ui/`` (the page), ``/ui/static/…`` (its own files) and ``/ui/vendor/…``
-    (three.js and uPlot, fetched from npm when the package was built)."""
+    (three.js and uPlot, committed in server/ui/vendor/ and shipped in the wheel)."""
     app.mount("/ui/static", StaticFiles(directory=STATIC_DIR), name="ui-static")
-    # A source tree never built has no vendor folder: its files are then 404s, and the page
-    # a 503 that says why.
+    # A tree whose vendor folder was deleted: its files are then 404s, and the page a 503
+    # that says why.
     if VENDOR_DIR.is_dir():
         app.mount("/ui/vendor", StaticFiles(directory=VENDOR_DIR), name="ui-vendor")
     html, csp = _page()
@@ -57,10 +57,12 @@ def add_ui_pages(app: FastAPI) -> None:
         if missing:
             return HTMLResponse(
                 "<!doctype html><title>burrforce live view</title><h1>The live view's scripts "
-                "are missing</h1><p>This installation was not built with them: "
-                + ", ".join(missing) + ". Reinstall burrforce (<code>pip install .</code> or "
-                "<code>pip install -e .</code>) with access to the npm registry, or set "
-                "BURRFORCE_NPM_REGISTRY to a mirror.</p>", status_code=503,
+                "are missing</h1><p>This installation lacks them: "
+                + ", ".join(missing) + ". They are part of burrforce's sources "
+                "(<code>server/ui/vendor/</code>): reinstall burrforce from a complete "
+                "checkout or sdist, or restore them from npm with "
+                "<code>python server/ui/vendor.py</code> (BURRFORCE_NPM_REGISTRY names a "
+                "mirror).</p>", status_code=503,
                 headers={"Content-Security-Policy": CSP.format(hashes="")})
         return HTMLResponse(html, headers={"Content-Security-Policy": csp,
                                            "Cache-Control": "no-cache"})

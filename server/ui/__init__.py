@@ -1,7 +1,7 @@
 """The live view's files: the page (``static/``) and its third-party scripts (``vendor/``).
 
-``vendor/`` is not in git: the build fetches it from npm and verifies it against
-``vendor.lock.json`` (``vendor.py``).
+``vendor/`` is committed with the packages' licences; ``vendor.lock.json`` records their
+versions and hashes, and ``vendor.py`` verifies them or refreshes them from npm.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ STATIC_DIR = UI_DIR / "static"
 def vendor_missing() -> list[str]:
     """The locked files (paths under ``VENDOR_DIR``) that are absent.
 
-    Presence only, no hashing: the build verified them, and this is cheap enough to ask per
-    request. An install built without them (a source tree never built) answers all of them.
+    Presence only, no hashing (``vendor.py --check`` hashes): cheap enough to ask per
+    request. A tree whose ``vendor/`` was deleted answers all of them.
     """
     # Imported here, not at the top: `python -m burrforce.server.ui.vendor` would otherwise
     # find the module already imported by its package and warn.

@@ -1,19 +1,23 @@
-"""The live view's third-party files (three.js, uPlot), fetched from the npm registry at build time.
+"""The live view's third-party files (three.js, uPlot): verified in place, refreshed from npm.
 
-``vendor.lock.json`` beside this file pins each npm package: its version, its tarball's URL and
-the registry's sha512 ``integrity``, and the files taken from it (path inside the tarball →
-path under ``vendor/``) with their sha256. A tarball is checked against its integrity before
-anything is read from it, each file against its sha256 before anything is written, and the
-files are written atomically: a failed or tampered download leaves the target as it was and
-fails the build, so no wheel ever ships the page without its scripts.
+The files are committed in ``vendor/`` beside this file, with their licences, so a build needs
+no network. ``vendor.lock.json`` is their record: each npm package's version, its tarball's URL
+and the registry's sha512 ``integrity``, and the files taken from it (path inside the tarball →
+path under ``vendor/``) with their sha256.
 
-Files already present with the locked sha256 are not fetched again: a rebuild is offline.
+At run time only :func:`load_lock` and :func:`check` are used (``ui.vendor_missing``, and
+``--check`` on an installation). :func:`fetch` and :func:`relock` are the maintainer's refresh
+(``vendor/README.md`` says when and how): a tarball is checked against its integrity before
+anything is read from it, each file against its sha256 before anything is written (``fetch``),
+and files are written atomically, so a failed or tampered download leaves the folder as it was.
 
-Stdlib only: ``setup.py`` loads this file by path during a build, before any dependency is
-installed. Also a command::
+Stdlib only, and runnable from a checkout without installing anything::
 
-    python -m burrforce.server.ui.vendor [--check] [--target DIR]
-    python server/ui/vendor.py [--check] [--target DIR]
+    python server/ui/vendor.py --check      # verify vendor/ against the lock; exit 1 if not
+    python server/ui/vendor.py              # write what is missing or differs, from npm
+    python server/ui/vendor.py --relock     # after editing a version, tarball and integrity
+                                            # in the lock: fetch all, record the new sha256s
+    python -m burrforce.server.ui.vendor --check   # the same, on an installation
 
 Environment: ``BURRFORCE_NPM_REGISTRY`` replaces https://registry.npmjs.org (a mirror with
 npm's layout: Verdaccio, Artifactory, Nexus); CA bundles as urllib finds them
@@ -113,13 +117,43 @@ def fetch(target_dir: Path = VENDOR_DIR, lock_path: Path = LOCK_PATH,
         tarball = _download(url, pkg)
         _verify_integrity(tarball, pkg, url)
         contents.update(_extract(tarball, stale, pkg, url))
-    root = target_dir.resolve()
-    for rel in contents:  # a symlinked folder inside the target could still lead out of it
-        if not (target_dir / rel).resolve().is_relative_to(root):
-            raise VendorError(f"{target_dir / rel} resolves outside {root}; nothing was written")
-    for rel, data in contents.items():
-        _write_atomically(target_dir / rel, data)
+    _write_all(target_dir, contents)
     return sorted(contents)
+
+
+def relock(target_dir: Path = VENDOR_DIR, lock_path: Path = LOCK_PATH,
+           registry: str | None = None, log=print) -> list[str]:
+    """Download every locked package, verify its integrity, write its files into
+    ``target_dir`` and record their sha256 in the lock; return the files whose sha256 changed.
+
+    For a maintainer moving a package to another release: edit its ``version``, ``tarball``
+    and ``integrity`` in the lock first (a new file's ``sha256`` may be 64 zeros). The
+    registry's integrity stays the trust anchor; nothing is written unless every tarball
+    matches it.
+    """
+    target_dir = Path(target_dir)
+    lock = json.loads(Path(lock_path).read_text(encoding="utf-8"))
+    packages = load_lock(lock_path)
+    registry = (registry or os.environ.get(REGISTRY_ENV) or DEFAULT_REGISTRY).rstrip("/")
+    contents: dict[str, bytes] = {}
+    for pkg in packages:
+        url = _tarball_url(pkg, registry)
+        log(f"vendor: fetching {_label(pkg)} from {url}")
+        tarball = _download(url, pkg)
+        _verify_integrity(tarball, pkg, url)
+        contents.update(_extract(tarball, pkg["files"], pkg, url, check_sha256=False))
+    changed = []
+    for pkg in packages:
+        for entry in pkg["files"]:
+            digest = hashlib.sha256(contents[entry["to"]]).hexdigest()
+            if digest != entry["sha256"]:
+                changed.append(entry["to"])
+            entry["sha256"] = digest
+    _write_all(target_dir, contents)
+    lock["packages"] = packages
+    _write_atomically(Path(lock_path),
+                      (json.dumps(lock, indent=2, ensure_ascii=False) + "\n").encode("utf-8"))
+    return sorted(changed)
 
 
 def _label(pkg: dict) -> str:
@@ -195,7 +229,8 @@ def _verify_integrity(tarball: bytes, pkg: dict, url: str) -> None:
                           f"(got {actual}, locked {expected}); nothing was written")
 
 
-def _extract(tarball: bytes, entries: list[dict], pkg: dict, url: str) -> dict[str, bytes]:
+def _extract(tarball: bytes, entries: list[dict], pkg: dict, url: str,
+             check_sha256: bool = True) -> dict[str, bytes]:
     out: dict[str, bytes] = {}
     try:
         with tarfile.open(fileobj=io.BytesIO(tarball), mode="r:gz") as tar:
@@ -209,7 +244,7 @@ def _extract(tarball: bytes, entries: list[dict], pkg: dict, url: str) -> dict[s
                     raise VendorError(f"{_label(pkg)}: {entry['from']} is not a regular file")
                 data = tar.extractfile(member).read()
                 digest = hashlib.sha256(data).hexdigest()
-                if not hmac.compare_digest(digest, entry["sha256"]):
+                if check_sha256 and not hmac.compare_digest(digest, entry["sha256"]):
                     raise VendorError(f"{_label(pkg)}: {entry['from']} has sha256 {digest}, "
                                       f"locked {entry['sha256']}; nothing was written")
                 out[entry["to"]] = data
@@ -223,6 +258,15 @@ def _file_matches(path: Path, sha256: str) -> bool:
         return hmac.compare_digest(hashlib.sha256(path.read_bytes()).hexdigest(), sha256)
     except OSError:
         return False
+
+
+def _write_all(target_dir: Path, contents: dict[str, bytes]) -> None:
+    root = target_dir.resolve()
+    for rel in contents:  # a symlinked folder inside the target could still lead out of it
+        if not (target_dir / rel).resolve().is_relative_to(root):
+            raise VendorError(f"{target_dir / rel} resolves outside {root}; nothing was written")
+    for rel, data in contents.items():
+        _write_atomically(target_dir / rel, data)
 
 
 def _write_atomically(path: Path, data: bytes) -> None:
@@ -241,10 +285,14 @@ def _write_atomically(path: Path, data: bytes) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m burrforce.server.ui.vendor",
-        description="Fetch the live view's third-party files from npm and verify them "
-                    f"against {LOCK_PATH.name}.")
-    parser.add_argument("--check", action="store_true",
-                        help="only verify the files already there; exit 1 if any differs")
+        description="Verify the live view's third-party files against "
+                    f"{LOCK_PATH.name}, or refresh them from npm (maintainers).")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--check", action="store_true",
+                      help="only verify the files already there; exit 1 if any differs")
+    mode.add_argument("--relock", action="store_true",
+                      help="fetch every package again and record the files' sha256 in the "
+                           "lock (after editing a version, tarball and integrity in it)")
     parser.add_argument("--target", type=Path, default=VENDOR_DIR,
                         help=f"folder to write into (default: {VENDOR_DIR})")
     parser.add_argument("--lock", type=Path, default=LOCK_PATH, help=argparse.SUPPRESS)
@@ -256,6 +304,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"vendor: {args.target / rel} is missing or differs from the lock",
                       file=sys.stderr)
             return 1 if bad else 0
+        if args.relock:
+            changed = relock(args.target, args.lock)
+            print(f"vendor: {len(changed)} file(s) changed, lock rewritten: {args.lock}")
+            return 0
         written = fetch(args.target, args.lock)
     except VendorError as exc:
         print(f"vendor: {exc}", file=sys.stderr)
