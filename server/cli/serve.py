@@ -34,6 +34,7 @@ from ..argtypes import float_in, int_at_least, int_in
 from ..haptics.profiles import PROFILES
 from .client_demo import EXIT_GAVE_WAY
 from .device import add_loop_options, loop_config
+from .invocation import burrforce_command
 
 STATUS_INTERVAL_S = 2.0
 TOKEN_FILE = "token"
@@ -372,7 +373,8 @@ def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: st
     if haptic_device:  # a second stream on the device's session would fight it
         say(f"try:  {token_hint}")
     else:
-        say("try:  burrforce client demo          (cuts a groove and prints the forces)")
+        say(f"try:  {burrforce_command()} client demo          (cuts a groove and prints the "
+            "forces)")
         say(f"      {token_hint}")
     say(f"      curl -H \"Authorization: Bearer $TOKEN\" -X PATCH -H 'Content-Type: "
         f"application/json' -d '{{\"us_n_mm2\": 1610}}' {url}/v1/sessions/{c.session}/"
@@ -428,7 +430,7 @@ def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | Non
     engine) and wait to go on until the session has had no other traffic for a whole
     interval: a session has one stream, and two clients taking it back and forth both lose
     their packets."""
-    say("--demo: running `burrforce client demo` against this server...")
+    say(f"--demo: running `{burrforce_command()} client demo` against this server...")
     x_mm, y_mm = demo_start_mm(bone_info)
     code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
     if code is None:

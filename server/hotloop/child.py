@@ -98,7 +98,7 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
     wake = config.wake
     # Measured (``bench sessions --workers 2``, 8 sessions, eight alternated pairs): p99
     # 0.74–0.98 ms against 1.77–3.52 ms at nice -10 when the loops contend for the cores
-    # (README "Real-time scheduling").
+    # (docs/serving.md, "Real-time scheduling").
     realtime = config.realtime and enter_realtime(HOT_LOOP_PRIORITY)
     if realtime:
         # Polling at a real-time priority would keep every normal task off the loop's core
