@@ -18,7 +18,7 @@ import numpy as np
 from ..hot_kernel import hot_inline, hot_kernel
 from ..model.kernels import tool_basis
 from ..model.shapes import Arc, Burr
-from .voxels import cache_read, cache_write, plane_fraction
+from .voxels import CACHE_SHIFT, plane_fraction
 
 # Layout of the float64 per-tick geometry vector (``fill_geometry``), length N_GEO.
 GEO_E1 = 0  # [0:3] tool basis e1, grid frame
@@ -222,11 +222,17 @@ def cached_revolved_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, profi
                              hy, hz):
     """``revolved_coverage`` of voxel (i, j, k), computed at most once per tick (the cache's
     stamping as ``voxels.cached_coverage``)."""
-    a, b, c, cq = cache_read(cache, o0, o1, o2, tick, i, j, k)
-    if cq >= 0:
+    a = i - o0
+    b = j - o1
+    c = k - o2
+    if 0 <= a < cache.shape[0] and 0 <= b < cache.shape[1] and 0 <= c < cache.shape[2]:
+        entry = cache[a, b, c]
+        if (entry >> CACHE_SHIFT) == tick:
+            return entry & 255
+        cq = revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz)
+        cache[a, b, c] = (tick << CACHE_SHIFT) | cq
         return cq
-    return cache_write(cache, a, b, c, tick,
-                       revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz))
+    return revolved_coverage(dx, dy, dz, profile, geo, hx, hy, hz)
 
 
 @hot_inline

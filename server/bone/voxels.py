@@ -90,40 +90,21 @@ def cache_origin(cache, cx, cy, cz, hx, hy, hz):
 
 
 @hot_inline
-def cache_read(cache, o0, o1, o2, tick, i, j, k):
-    """Voxel (i, j, k) in the tick's coverage cache (origin (o0, o1, o2)): (a, b, c, cq), its
-    slot (a = -1 where the cache does not reach it) and its coverage (0–255) if stamped this
-    tick, else -1."""
+def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy, hz, r_in2,
+                    r_out2):
+    """``sphere_coverage`` of voxel (i, j, k), computed at most once per tick: carving fills
+    the cache, and every bone sample whose stencil shares the voxel reads it back."""
     a = i - o0
     b = j - o1
     c = k - o2
     if 0 <= a < cache.shape[0] and 0 <= b < cache.shape[1] and 0 <= c < cache.shape[2]:
         entry = cache[a, b, c]
         if (entry >> CACHE_SHIFT) == tick:
-            return a, b, c, entry & 255
-        return a, b, c, -1
-    return -1, b, c, -1
-
-
-@hot_inline
-def cache_write(cache, a, b, c, tick, cq):
-    """Stamp coverage ``cq`` in slot (a, b, c) for this tick (nothing if a = -1); returns
-    ``cq``."""
-    if a >= 0:
+            return entry & 255
+        cq = sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
         cache[a, b, c] = (tick << CACHE_SHIFT) | cq
-    return cq
-
-
-@hot_inline
-def cached_coverage(cache, o0, o1, o2, tick, i, j, k, dx, dy, dz, radius, hx, hy, hz, r_in2,
-                    r_out2):
-    """``sphere_coverage`` of voxel (i, j, k), computed at most once per tick: carving fills
-    the cache, and every bone sample whose stencil shares the voxel reads it back."""
-    a, b, c, cq = cache_read(cache, o0, o1, o2, tick, i, j, k)
-    if cq >= 0:
         return cq
-    return cache_write(cache, a, b, c, tick,
-                       sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2))
+    return sphere_coverage(dx, dy, dz, radius, hx, hy, hz, r_in2, r_out2)
 
 
 @hot_inline
