@@ -94,6 +94,13 @@ SLOW: tuple[str, ...] = (
     # numba types (and compiles) the kernels anew for a signature no cache holds: minutes.
     "test_bone_step_raw.py::test_numba_dispatch_answers_as_the_bound_call_to_the_last_bit",
     "test_bone_shared.py::test_a_tick_that_raises_still_closes_the_seqlock",
+    # `burrforce compile` into an empty cache (every kernel, minutes) and what loads from it;
+    # the cache's digest and location tests stay in the fast tier.
+    "test_compile_cache.py::test_compile_fills_the_cache_it_is_given",
+    "test_compile_cache.py::test_after_compile_processes_only_load_even_two_at_once",
+    "test_compile_cache.py::test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache",
+    # 100 000 datagrams; the live server's other tests stay.
+    "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
     # JACK's dummy driver run for a minute; the ALSA file plugin test covers the same output.
     "test_actuator_audio.py::test_audio_jack_callback_keeps_up_and_watchdog",
     # The session bench's variants; its rows and counts stay in the fast tier.
