@@ -101,6 +101,13 @@ SLOW: tuple[str, ...] = (
     "test_compile_cache.py::test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache",
     # 100 000 datagrams; the live server's other tests stay.
     "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
+    # The schema fuzzers (schemathesis over every route); the module's token test stays.
+    "test_api_schema.py::test_no_server_errors",
+    "test_api_schema.py::test_answers_match_the_schema",
+    # serve --demo until its groove has cut; the REST end-to-end test of serve stays.
+    "test_serve_e2e.py::test_serve_demo_prints_the_live_view_and_keeps_cutting",
+    # A full accuracy bench through the CLI; the other CLI tests stay.
+    "test_cli.py::test_bench_accuracy_json_and_results_file",
     # JACK's dummy driver run for a minute; the ALSA file plugin test covers the same output.
     "test_actuator_audio.py::test_audio_jack_callback_keeps_up_and_watchdog",
     # The session bench's variants; its rows and counts stay in the fast tier.
