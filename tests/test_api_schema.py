@@ -12,6 +12,7 @@ import httpx
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, reject, settings
+from hypothesis_profiles import examples
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import response_schema_conformance
 from test_rest_client import live_server  # the shared live server (see that module)
@@ -19,7 +20,7 @@ from test_rest_client import live_server  # the shared live server (see that mod
 from burrforce.client import BurrClient, ServerError
 from burrforce.proto.messages import ERROR_NAMES
 
-EXAMPLES_PER_OPERATION = 25
+EXAMPLES_PER_OPERATION = examples(25)
 #: Most generated session ids are sent to the fixture session (a random id is a 404 and
 #: tests nothing past the lookup); one in FIXTURE_SHARE keeps its random id.
 FIXTURE_SHARE = 4

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.bone import (
     BoneEngine,
@@ -242,7 +243,7 @@ def test_skipping_what_the_last_tick_swept_changes_nothing(steps, depth):
     assert np.count_nonzero(grids[0].swept) > 0
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(st.lists(st.tuples(st.floats(-0.05, 0.05), st.floats(-0.05, 0.05),
                           st.floats(-0.05, 0.05)), min_size=2, max_size=8),
        st.floats(0.5, 1.5))
@@ -328,7 +329,7 @@ def test_air_keeps_only_whether_a_burr_reached_it(burr):
 
 
 @pytest.mark.parametrize("burr", [None, BARREL], ids=["sphere", "barrel"])
-@settings(max_examples=10)
+@settings(max_examples=examples(10))
 @given(seed=st.integers(0, 2**32 - 1))
 def test_the_tick_reads_of_air_only_whether_a_burr_reached_it(burr, seed):
     """Forces, removal and the bone's carving read of an air voxel only whether a burr has

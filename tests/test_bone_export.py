@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.proto.bricks import FORMAT, decode_delta, encode_delta
 from burrforce.server.bench.accuracy import oblique_rotation
@@ -529,7 +530,7 @@ def test_delta_pages_never_skip_a_brick():
     assert apply_delta(np.zeros(grid.shape, np.uint8), decode_delta(encode_delta(d))) is None
 
 
-@settings(max_examples=25)
+@settings(max_examples=examples(25))
 @given(
     first=st.lists(st.tuples(st.floats(0.0, 6.0), st.floats(-2.0, 3.0), st.floats(-1.0, 4.5)),
                    min_size=1, max_size=4),
@@ -595,7 +596,7 @@ def _follow(grid: BoneGrid, copy: np.ndarray, since, generation, bone_generation
     pytest.fail("paging did not finish")
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=examples(15), deadline=None)
 @given(old_cut=st.integers(2, 8), new_cut=st.integers(1, 12), max_bricks=st.integers(200, 600))
 def test_a_copy_of_another_generation_is_answered_in_full(old_cut, new_cut, max_bricks):
     # The engine's copy is of the old bone at version v; the bone is replaced (versions restart

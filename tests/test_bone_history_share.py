@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.bone.history import (
     CAND_CENTRE,
@@ -113,7 +114,7 @@ def patch_across_one_wall(draw):
     return p, s1, s2, [(nearest - draw(st.floats(0.0, 1.0)) * u, u, R_MM)]
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(patch_across_one_wall())
 def test_the_share_is_the_patch_outside_a_capsule(case):
     """Against one capsule the share is the patch's part outside it, up to the sliver its
@@ -143,7 +144,7 @@ def patch_near_a_path(draw):
     return p, s1, s2, capsules
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(patch_near_a_path())
 def test_a_patch_clear_of_the_whole_path_reads_exactly_one(case):
     """The burr's front, outside every capsule of its path, reads exactly 1 (the share's first
@@ -190,7 +191,7 @@ def burr_just_ahead_of_its_path(draw):
     return p, s1, s2, capsules
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(burr_just_ahead_of_its_path())
 def test_the_front_test_agrees_with_the_first_pass_next_to_the_path(case):
     """Next to the capsules' walls, where the front test's bounds are tight (the centre a few

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.bench.accuracy import oblique_rotation
 from burrforce.server.bench.groove import groove_block
@@ -64,7 +65,7 @@ def test_force_and_removal_grow_on_a_fine_sweep(kind, angle):
         assert steps.min() >= -1e-3, (kind, angle, depths[1 + np.argmin(steps)])
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(kind=st.sampled_from(["aligned", "oblique"]), angle=st.floats(0.0, 90.0),
        depth=st.floats(0.01, 1.8), step=st.floats(1e-6, 0.2))
 def test_deeper_never_cuts_much_less(kind, angle, depth, step):

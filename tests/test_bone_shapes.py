@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import settings as hsettings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.bench.accuracy import oblique_rotation
 from burrforce.server.bench.groove import GROOVE_BLOCK_HI_MM, GROOVE_BLOCK_LO_MM, groove_block
@@ -123,7 +124,7 @@ def deep_block() -> BoneGrid:
 _DEEP = {}
 
 
-@hsettings(max_examples=12)
+@hsettings(max_examples=examples(12))
 @given(shape=st.sampled_from(["flat", "round", "barrel"]),
        polar=st.floats(0.0, math.pi), azimuth=st.floats(0.0, 2.0 * math.pi),
        shift=st.tuples(*[st.floats(-0.5, 0.5)] * 3))
@@ -282,7 +283,7 @@ PROFILES = st.one_of(
 
 
 @given(shape=PROFILES)
-@hsettings(max_examples=60, deadline=None)
+@hsettings(max_examples=examples(60), deadline=None)
 def test_the_ball_reaches_the_farthest_point_of_the_solid(shape):
     """``bounding_radius_mm`` bounds every point of the profile (the carve skips voxels beyond
     it) and is reached (it is the farthest point, not a loose box)."""
@@ -297,7 +298,7 @@ def test_the_ball_reaches_the_farthest_point_of_the_solid(shape):
 
 @given(shape=PROFILES, direction=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
        beyond=st.floats(0.0, 0.5), voxel_mm=st.sampled_from([0.05, 0.1, 0.2]))
-@hsettings(max_examples=80, deadline=None)
+@hsettings(max_examples=examples(80), deadline=None)
 def test_a_voxel_beyond_the_ball_is_not_covered(shape, direction, beyond, voxel_mm):
     """The premise of the carve's cut to the ball: a voxel whose centre lies half a diagonal
     beyond the solid's farthest point gets no coverage from the full computation either

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.calib.design import ModelSetup, Sensitivities
 from burrforce.server.calib.fit import FitError, FitOptions, calibrate, fieller, fit_rows
@@ -43,7 +44,7 @@ def _rows(sens, cases, us=US, k=K, replicates=5, noise_N=0.0, seed=0):
 
 
 # -- the design: every component is Us·(a + K·b) ------------------------------------------------
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 @given(us=st.floats(1.0, 1e5), k=st.floats(0.0, 5.0), i=st.integers(0, 8))
 def test_the_model_is_linear_in_us_and_us_k(sens, cases, us, k, i):
     case = cases[i]
@@ -208,14 +209,29 @@ def test_a_negative_k_and_an_interval_reaching_zero_are_warned_about(sens, cases
                  for r in _rows(sens, cases, noise_N=0.01)]
     cal = calibrate(pulled_in, FitOptions(), sens)
     assert cal.estimate.k < 0 and any("K = " in w and "negative" in w for w in cal.warnings)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_forces_that_are_mostly_noise_are_warned_about_or_refused(sens, cases, sign):
+    """Noise with a trace of the model's signs: the fitted Us is small and its interval
+    reaches 0, which is warned about; the same rows negated give exactly the opposite Us (the
+    fit is linear in the forces), ≤ 0, which is refused. Both branches are asserted, whichever
+    sign the noise happens to favour."""
     rng = np.random.default_rng(0)
     noise = [CaseRow(c, *(0.02 * rng.standard_normal(3) + [-0.001, 0.0, 0.001]))
              for c in cases for _ in range(2)]
-    try:
-        cal = calibrate(noise, FitOptions(fit_k=False), sens)
-    except FitError:  # the noise may land on Us ≤ 0: refused, which is fine too
-        return
-    assert any("barely determine Us" in w for w in cal.warnings)
+    options = FitOptions(fit_k=False)
+    us = fit_rows(noise, sens, options).us  # the seed's noise favours the model's signs
+    assert us > 0.0
+    rows = [CaseRow(r.case, sign * r.feed_N, sign * r.lateral_N, sign * r.normal_N)
+            for r in noise]
+    if sign > 0.0:
+        cal = calibrate(rows, options, sens)
+        assert cal.estimate.us == us
+        assert any("barely determine Us" in w for w in cal.warnings)
+    else:
+        with pytest.raises(FitError, match=r"Us = -.* ≤ 0"):
+            calibrate(rows, options, sens)
 
 
 def test_nearly_exact_data_keep_a_bounded_k_interval(sens, cases):
@@ -287,7 +303,7 @@ def test_an_unreadable_case_table_is_a_clear_error(tmp_path):
         read_case_table(tmp_path / "bin.csv")
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.text(max_size=300))
 def test_any_text_is_a_table_or_a_case_table_error(text):
     try:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.calib.recording import (
     MIN_SAMPLES,
@@ -375,7 +376,8 @@ def _load_or_recording_error(path, rate):
     assert rec.sample_rate_hz > 0.0
 
 
-FUZZ = settings(max_examples=150, suppress_health_check=[HealthCheck.function_scoped_fixture])
+FUZZ = settings(max_examples=examples(150),
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
 @FUZZ

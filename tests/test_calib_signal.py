@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.calib.recording import Recording
 from burrforce.server.calib.segments import find_segments
@@ -41,7 +42,7 @@ def test_noise_free_mean_with_drift_and_tone(phase):
                        atol=1e-9)
 
 
-@settings(max_examples=25)
+@settings(max_examples=examples(25))
 @given(mean=st.tuples(*[st.floats(-20.0, 20.0)] * 3).filter(lambda m: np.linalg.norm(m) > 1.0),
        drift=st.tuples(*[st.floats(-0.05, 0.05)] * 3),
        spindle_hz=st.floats(700.0, 1300.0), phase=st.floats(0.0, 6.3))

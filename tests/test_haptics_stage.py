@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.proto.codec import decode_server_message, encode_pose
 from burrforce.proto.messages import (
@@ -36,7 +37,7 @@ vec = st.floats(-1e3, 1e3, allow_nan=False)
 
 
 # -- limits and passivity ---------------------------------------------------------------------
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.tuples(vec, vec, vec), st.tuples(vec, vec, vec), st.floats(0.01, 100.0),
        st.floats(1e-4, 100.0))
 def test_limits_hold_and_leave_what_is_within_them(force, previous, max_force, max_step):
@@ -83,7 +84,7 @@ def _stage(profile: str = "touch"):
     return new_state(), config.params_vector(np.full(3, 0.1), 2000.0)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.floats(0.0, 1e7), st.tuples(vec, vec, vec), st.tuples(vec, vec, vec),
        st.floats(1e-4, 0.05))
 def test_the_proxy_is_stable_for_any_cutting_damping(beta, device_p, device_v, dt):

@@ -8,6 +8,7 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.proto.codec import decode_server_message, encode_pose
 from burrforce.proto.messages import Pose
@@ -49,7 +50,7 @@ class Rig:
                                                             10**12 + t_us * 1000))
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.floats(0.0, 2e5), st.floats(0.0, 2e5))
 def test_the_weight_is_a_monotone_smooth_step(r1, r2):
     lo, hi = sorted((r1, r2))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.proto import frames
 from burrforce.proto.codec import (
@@ -294,7 +295,7 @@ _ACTIONS = st.lists(st.sampled_from(["hello", "commit", "current", "old", "repla
                                      "junk"]), max_size=60)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(actions=_ACTIONS)
 def test_only_poses_of_the_committed_stream_are_ever_ticked(actions):
     """Random interleavings of hellos, commits, POSEs of old and current streams, replays
@@ -482,7 +483,7 @@ _VALID = encode_pose(Pose(1, 7, 7000, (5.0, 0.0, 1.5), (0.0, 0.0, 0.0, 1.0), 60_
 _SHARED = make()
 
 
-@settings(max_examples=400)
+@settings(max_examples=examples(400))
 @given(_mutations(_VALID))
 def test_handle_never_raises(data):
     d, _ = _SHARED
@@ -588,7 +589,7 @@ _SEQUENCE = st.lists(st.tuples(st.integers(1, 40), st.integers(0, 3), st.data())
                      max_size=12)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(_SEQUENCE)
 def test_the_compiled_path_answers_and_counts_exactly_as_the_general_decoder(steps):
     """The same datagrams (valid, mutated, replayed) through the compiled packet path and

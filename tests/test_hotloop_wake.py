@@ -9,6 +9,7 @@ import time
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.client.udp import BurrClient
 from burrforce.proto.tag import new_key
@@ -178,7 +179,7 @@ def test_runnable_tasks_come_from_loadavg(tmp_path, text, running):
     here.close()
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.tuples(st.sampled_from("abc"), st.integers(1, 3 * MS),
                           st.integers(0, 2 * MS)), min_size=1, max_size=200),
        st.floats(0.0, 5000.0), st.floats(0.01, 1.0))

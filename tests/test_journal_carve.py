@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.api.journal_carve import CarveLog, apply_log, read_log
 from burrforce.server.bone import BoneEngine, ShaftParams, phantom
@@ -111,7 +112,7 @@ def test_a_log_for_another_bone_is_refused(tmp_path, carved):
         apply_log(small.grid, *read_log(tmp_path / "carve.log"))
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(st.binary(max_size=3000))
 def test_any_bytes_read_as_a_log_never_raise(tmp_path_factory, data):
     path = tmp_path_factory.mktemp("fuzz") / "carve.log"

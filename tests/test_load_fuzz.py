@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.bench import bone_files
 from burrforce.server.bone.bone import Bone
@@ -64,7 +65,7 @@ def _mutate(data: bytes, how) -> bytes:
 
 @pytest.mark.filterwarnings("ignore::UserWarning")  # pydicom warns about each bad value
 @pytest.mark.parametrize("fmt", FORMATS)
-@settings(max_examples=150, deadline=None,
+@settings(max_examples=examples(150), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(how=mutation)
 def test_corrupted_files_fail_cleanly(fmt, how, originals, tmp_path):

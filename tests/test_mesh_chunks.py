@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 from test_bone_export import carve_groove, engine_for, small_block
 from test_rest_client import live_server
 
@@ -274,7 +275,7 @@ def test_a_copy_of_another_generation_starts_over():
     assert split.have is None and split.generation is None
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(cut=st.integers(0, 10_000), flip=st.integers(0, 10_000), value=st.integers(0, 255))
 def test_decode_rejects_damage_and_never_crashes(carved, cut, flip, value):
     data = encode(mesh_page(carved, MeshRequest(1, 1, False), None, 0, MAX_BYTES_MIN,

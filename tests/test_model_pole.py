@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.model import CuttingModel, CuttingParams
 from burrforce.server.model.kernels import ACC_JACOBIAN
@@ -88,7 +89,7 @@ def test_force_and_removal_grow_on_a_fine_depth_sweep(n_theta, angle):
     assert np.all(np.diff(normal) >= -1e-6 * normal[1:])
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(angle=st.floats(0.0, 90.0), depth=st.floats(1e-3, 3.5), step=st.floats(1e-9, 0.3))
 def test_deeper_never_cuts_less(angle, depth, step):
     shallow = _plunge(MODEL, angle, depth)

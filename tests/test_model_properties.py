@@ -7,6 +7,7 @@ import math
 import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from hypothesis_profiles import examples
 
 from burrforce.server.model import CuttingModel, CuttingParams, FlatWorkpiece
 from burrforce.server.model.kernels import box_fraction
@@ -19,7 +20,7 @@ rpm = st.floats(-100_000.0, 100_000.0, allow_nan=False)
 feed = st.tuples(*[st.floats(-500.0, 500.0, allow_nan=False)] * 3).map(np.array)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(centre=vec, axis=unit, v=feed, speed=rpm, normal=unit)
 def test_always_finite_and_physically_signed(centre, axis, v, speed, normal):
     model = CuttingModel(MODEL.params, FlatWorkpiece((0.0, 0.0, 0.0), normal), n_theta=16)
@@ -41,7 +42,7 @@ def test_always_finite_and_physically_signed(centre, axis, v, speed, normal):
                             abs_tol=1e-15)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(xy=st.tuples(finite, finite), height=st.floats(2.0, 100.0), axis=unit, v=feed, speed=rpm)
 def test_zero_when_the_burr_is_clear_of_the_bone(xy, height, axis, v, speed):
     r = MODEL.evaluate(np.array([xy[0], xy[1], height]), axis, v, speed)
@@ -49,21 +50,21 @@ def test_zero_when_the_burr_is_clear_of_the_bone(xy, height, axis, v, speed):
     assert np.all(r.force_N == 0.0) and np.all(r.torque_Nmm == 0.0) and r.power_W == 0.0
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(centre=vec, axis=unit, v=feed, speed=st.floats(-999.0, 999.0, allow_nan=False))
 def test_zero_below_the_minimum_cutting_speed(centre, axis, v, speed):
     r = MODEL.evaluate(centre, axis, v, speed)
     assert not r.cutting and np.all(r.force_N == 0.0) and r.removed_mm3_s == 0.0
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(centre=vec, axis=unit, speed=rpm)
 def test_zero_without_feed(centre, axis, speed):
     r = MODEL.evaluate(centre, axis, np.zeros(3), speed)
     assert not r.cutting and np.all(r.force_N == 0.0)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(depth=st.floats(0.05, 3.9), axis=unit, v=feed.filter(lambda v: np.linalg.norm(v) > 1e-6),
        speed=st.floats(5000.0, 100_000.0), scale=st.floats(0.01, 100.0))
 def test_linear_in_us_at_random_poses(depth, axis, v, speed, scale):
@@ -88,7 +89,7 @@ def test_box_fraction_is_a_cdf(g0, a, b):
 
 
 @given(g0=st.floats(-2.0, 2.0), a=st.floats(0.01, 1.0), b=st.floats(0.01, 1.0))
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 def test_box_fraction_is_the_exact_area_fraction(g0, a, b):
     # Midpoint sampling of the rectangle on a fine grid converges to the exact area.
     n = 400
