@@ -59,21 +59,10 @@ def _summary(route) -> str:
 
 
 def rest_routes() -> str:
-    from burrforce.server.api import (
-        routes_calibration,
-        routes_data,
-        routes_devices,
-        routes_mesh,
-        routes_sessions,
-        routes_telemetry,
-    )
-    from burrforce.server.api.app import API_PREFIX
+    from burrforce.server.api.app import API_PREFIX, ROUTERS
 
     rows = [f"| {method} | `{path}` | {text} |" for method, path, text in APP_ROUTES]
-    routers = (routes_sessions.router, routes_data.router, routes_calibration.router,
-               routes_devices.router, routes_mesh.router, routes_mesh.ws_router,
-               routes_telemetry.router, routes_telemetry.ws_router)
-    for router in routers:
+    for router, _ in ROUTERS:
         for route in router.routes:
             methods = sorted(getattr(route, "methods", None) or ["WebSocket"])
             rows.append(f"| {', '.join(methods)} | `{API_PREFIX}{route.path}` | "

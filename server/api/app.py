@@ -31,6 +31,18 @@ from .supervisor import Supervisor, worker_state
 from .ui_pages import add_ui_pages
 
 API_PREFIX = "/v1"
+#: The API's routers under API_PREFIX, in the order they are mounted, and whether each needs
+#: the token (the WebSocket routers check it themselves, from the query).
+ROUTERS = (
+    (routes_sessions.router, True),
+    (routes_data.router, True),
+    (routes_calibration.router, True),
+    (routes_devices.router, True),
+    (routes_mesh.router, True),
+    (routes_mesh.ws_router, False),
+    (routes_telemetry.router, True),
+    (routes_telemetry.ws_router, False),
+)
 _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
 
 
@@ -129,18 +141,7 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         counters, bone versions, removed volume."""
         return Response(generate_latest(reg), media_type=CONTENT_TYPE_LATEST)
 
-    app.include_router(routes_sessions.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_data.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_calibration.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_devices.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_mesh.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_mesh.ws_router, prefix=API_PREFIX)
-    app.include_router(routes_telemetry.router, prefix=API_PREFIX,
-                       dependencies=[Depends(authorize)])
-    app.include_router(routes_telemetry.ws_router, prefix=API_PREFIX)
+    for router, needs_token in ROUTERS:
+        app.include_router(router, prefix=API_PREFIX,
+                           dependencies=[Depends(authorize)] if needs_token else None)
     return app
