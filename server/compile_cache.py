@@ -10,10 +10,13 @@ inherit it, so ``burrforce compile`` fills the very cache every later ``serve`` 
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import re
+import time
 from collections.abc import Iterator, MutableMapping
+from contextlib import contextmanager
 from functools import cache
 from importlib import metadata
 from pathlib import Path
@@ -150,3 +153,76 @@ def configure(environ: MutableMapping[str, str] | None = None) -> Path:
     if not environ.get(ENV):
         environ[ENV] = str(default_cache_dir(environ))
     return Path(environ[ENV])
+
+
+#: ``burrforce compile`` holds an exclusive lock on this file of the cache while it fills it.
+FILL_LOCK = "filling.lock"
+
+
+def _cpu() -> str:
+    # numba keys a cached kernel on the CPU it was compiled for: so does the marker.
+    return re.sub(r"[^\w.-]", "_", os.environ.get("NUMBA_CPU_NAME") or "host")
+
+
+def cache_dir(environ: MutableMapping[str, str] | None = None) -> Path | None:
+    """The cache numba uses (``NUMBA_CACHE_DIR``), None before :func:`configure`."""
+    value = (os.environ if environ is None else environ).get(ENV)
+    return Path(value) if value else None
+
+
+def is_complete(directory: Path | None = None) -> bool:
+    """Whether ``burrforce compile`` has filled the cache (``directory``, else
+    :func:`cache_dir`) for this CPU: every kernel the server runs loads from it, none
+    compiles. Until it has, a hot loop warms only its sessions' burrs."""
+    directory = directory if directory is not None else cache_dir()
+    return directory is not None and (directory / f"complete-{_cpu()}").is_file()
+
+
+def mark_complete(directory: Path | None = None) -> None:
+    """Note that every kernel is in the cache (``burrforce compile``, at its end)."""
+    directory = directory if directory is not None else cache_dir()
+    if directory is None:
+        return
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        (directory / f"complete-{_cpu()}").write_text(f"burrforce {__version__}\n")
+    except OSError:
+        pass  # a cache numba cannot write either: every start warms only its sessions' burrs
+
+
+@contextmanager
+def filling(wait: bool = True, directory: Path | None = None) -> Iterator[bool]:
+    """Hold the cache's fill lock (``FILL_LOCK``) for the block: yields True once held,
+    False if ``wait`` is False and another process holds it. One compiler at a time: on two
+    cores a second would only halve the first one's speed. A cache that cannot be written
+    (nor locked) yields True: nothing can be filling it."""
+    directory = directory if directory is not None else cache_dir()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd = os.open(directory / FILL_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    except (OSError, AttributeError):
+        yield True
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def wait_for_filler(timeout_s: float, directory: Path | None = None) -> bool:
+    """Wait until no ``burrforce compile`` fills the cache (at most ``timeout_s``): True if
+    none does (any more), False on timeout. What it compiled then loads instead of being
+    compiled a second time by the caller."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        with filling(wait=False, directory=directory) as held:
+            if held:
+                return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)

@@ -47,6 +47,9 @@ VOXEL_REFINE = 2
 MAX_CACHE_ENTRIES = 1 << 24
 
 _kernels_loaded = False
+#: The tick kernels this process has run (``warm_up``), by burr family: False for the round
+#: abrasive burr's (``SphereTick``), True for every other burr's (``RevolvedTick``).
+_warmed_ticks: set[bool] = set()
 #: The stand-in burr ``warm_up`` compiles the revolved tick with (any non-round-abrasive one).
 _WARM_CUTTER = Fluted(n_flutes=6)
 #: What ``step_raw`` checks of its vectors before the direct call: float64, contiguous.
@@ -234,9 +237,8 @@ class BoneEngine:
     def params(self, params: CuttingParams) -> None:
         check_burr(self.grid.spacing_mm, params, self.shaft)
         burr = params.shape
-        round_abrasive = isinstance(burr.shape, Sphere) and isinstance(burr.cutter, Abrasive)
-        revolved = None if round_abrasive else RevolvedTables.build(
-            burr, params.k, self.burr.n_theta * self.burr.n_phi, self.burr.refine)
+        revolved = RevolvedTables.build(burr, params.k, self.burr.n_theta * self.burr.n_phi,
+                                        self.burr.refine) if _revolved_tick(params) else None
         reach = params.radius_mm if revolved is None else bounding_radius_mm(burr)
         shape = coverage_cache_shape(reach, self.grid.spacing_mm)
         if math.prod(shape) > MAX_CACHE_ENTRIES:
@@ -561,14 +563,18 @@ class BoneEngine:
         """Σ Us(material) × removed volume since the engine was made, J (N·mm → mJ)."""
         return float(np.dot(self._removed_total, self.materials.us)) * self._mm3_per_unit * 1e-3
 
-    def warm_up(self) -> None:
+    def warm_up(self, every_burr: bool = True) -> None:
         """Compile (or load from numba's cache) every kernel a tick uses, without touching the
-        bone: one tick far outside the grid."""
+        bone: one tick far outside the grid. ``every_burr``: the other burr family's tick too
+        (``tick_warmed``), else only this burr's."""
         far = np.full(3, -1e5)
         unit = np.array([0.0, 0.0, 1.0])
         self.step_raw(far, unit, unit, self.params.min_cutting_rpm + 1.0, carve=False)
         self.ticks -= 1
         self.removed_this_tick_mm3()  # run only by ticks that remove bone, which this is not
+        _warmed_ticks.add(self._revolved is not None)
+        if not every_burr:
+            return
         # The other burrs' tick too (a tool change mid-stream must not compile): the round
         # one's, or a small stand-in's of the same types as any other's.
         other = None if self._revolved is not None else RevolvedTables.build(
@@ -577,4 +583,17 @@ class BoneEngine:
         self._stamp += 1
         bone_tick(*self._tick_fixed(other), far, unit, unit, 1.0, True, False,
                   self.grid.version + 1, self._stamp)
+        _warmed_ticks.add(other is not None)
+
+
+def tick_warmed(params: CuttingParams) -> bool:
+    """Whether this process has run the tick ``params``' burr needs (``BoneEngine.warm_up``):
+    if not, an engine's first tick with it would compile it, or load it from the cache."""
+    return _revolved_tick(params) in _warmed_ticks
+
+
+def _revolved_tick(params: CuttingParams) -> bool:
+    """Whether ``params``' burr runs the revolved-profile tick: all but the round abrasive."""
+    burr = params.shape
+    return not (isinstance(burr.shape, Sphere) and isinstance(burr.cutter, Abrasive))
 

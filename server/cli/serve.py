@@ -23,6 +23,7 @@ from pathlib import Path
 from ...client import connection
 from ...proto.frames import FRAMES
 from ...proto.tag import parse_key
+from .. import compile_cache
 from ..api.config import (
     DEFAULT_HTTP_PORT,
     DEFAULT_UDP_PORT,
@@ -178,6 +179,56 @@ def _load_bone_kernels() -> None:
         pass
 
 
+def _compile_first_start(say) -> None:
+    """Compile what a hot loop needs to serve a round burr (``compile_jobs.FIRST_START``),
+    in parallel processes, with a progress bar; the rest follows once serving
+    (:func:`_start_filler`). Waits instead for a ``burrforce compile`` already filling the
+    cache (another server's, behind its own first start)."""
+    from .compile_jobs import FIRST_START
+    from .compile_run import default_processes, run_jobs
+
+    say("first start on this machine: compiling the kernels a session needs (once: they "
+        "are cached; the rest compiles in the background once serving)")
+    with compile_cache.filling():
+        run_jobs(FIRST_START, default_processes(), say)
+
+
+def _start_filler(say, data_dir: Path) -> subprocess.Popen | None:
+    """``burrforce compile --background`` into the same cache: what the first start left out
+    (the other burrs' tick, meshes, reports, devices) compiled at a lower priority, one
+    process, while the server runs; its output goes to ``DATA_DIR/compile.log``."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        with open(data_dir / "compile.log", "ab") as log:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "burrforce.server.cli", "compile", "--background"],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True)  # its pool's processes stop with it
+    except OSError as e:
+        say(f"  (the other kernels were not compiled in the background: {e}; "
+            "`burrforce compile` does it)")
+        return None
+    say("  compiling the other kernels in the background (other burrs, meshes, devices): "
+        "a tool change waits for them")
+    return process
+
+
+def _stop_filler(process: subprocess.Popen | None) -> None:
+    """Stop the background compile with the server (the cache keeps what it finished; the
+    next start compiles the rest behind it again)."""
+    if process is None or process.poll() is not None:
+        return
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(process.pid, sig)
+            process.wait(timeout=wait_s)
+            return
+        except ProcessLookupError:
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
 def _say_realtime(say, plane) -> None:
     """Whether ``--realtime`` took: each loop thread switches before it reports ready (a
     worker restarted later is reported by ``/v1/health``)."""
@@ -222,9 +273,15 @@ def main(args: argparse.Namespace) -> int:
     token, new_token = resolve_token(config)
     bone = config.bone
     say = functools.partial(print, flush=True)
-    say(f"loading {bone} and warming up the kernels (the first start compiles them: "
-        "about a minute, once)...")
     t0 = time.monotonic()
+    # While the kernels compile (first start) or the hot loops warm up (other processes), this
+    # process loads the kernels its own bone build needs: a process's first cached kernel
+    # costs ~1 s of numba set-up, which would otherwise follow instead of overlapping.
+    threading.Thread(target=_load_bone_kernels, name="burrforce-kernels", daemon=True).start()
+    first_start = not compile_cache.is_complete()
+    if first_start:
+        _compile_first_start(say)
+    say(f"loading {bone}...")
     from ..api.journal import discard, discard_session
 
     if args.fresh:
@@ -238,10 +295,7 @@ def main(args: argparse.Namespace) -> int:
             "last run is forgotten; other sessions are resumed)")
     stack = ServerStack(config, token, say=say)
     conn_path = conn = None
-    # While the parent waits for the hot loops to warm up (other processes), it loads the
-    # kernels its own bone build needs: a process's first cached kernel costs ~1 s of numba
-    # set-up, which would otherwise follow the loops' start instead of overlapping it.
-    threading.Thread(target=_load_bone_kernels, name="burrforce-kernels", daemon=True).start()
+    filler = None
     try:
         stack.start_backend()
         plane = stack.plane
@@ -293,6 +347,8 @@ def main(args: argparse.Namespace) -> int:
             context["path"] = connection.write(c, args.connection_file)
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device, _pool_line(plane, session))
+            if first_start:
+                context["filler"] = _start_filler(say, Path(config.data_dir))
             if args.demo:
                 _run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
                           session.id)
@@ -307,7 +363,9 @@ def main(args: argparse.Namespace) -> int:
         server.run()
         done.set()
         conn, conn_path = context.get("conn"), context.get("path")
+        filler = context.get("filler")
     finally:
+        _stop_filler(filler)
         say("stopping: sessions journaled (the next start resumes them; --fresh forgets "
             "them), hot loop stopped...")
         stack.stop()

@@ -24,8 +24,9 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from .. import compile_cache
 from ..bone import MaterialTable, ShaftParams
-from ..bone.engine import check_burr
+from ..bone.engine import BoneEngine, check_burr, tick_warmed
 from ..model.params import CuttingParams
 from .dispatch import Dispatcher
 from .errors import CommandError, SessionExists, classify
@@ -35,6 +36,9 @@ from .spec import SessionSpec, bone_info, build_session
 
 #: The longest the packet thread waits for the GIL while a session is built, s (about).
 GIL_TURN_S = 100e-6
+#: The longest a tool change waits for a ``burrforce compile`` filling the cache, s: it
+#: compiles the tick itself after that.
+FILLER_WAIT_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -128,6 +132,8 @@ def _install_session(ctx: CommandContext, spec: object, adding: bool) -> dict:
             raise SessionExists(f"session {spec.session_id} exists")
     # Loading and warming are the slow part: on a dispatcher of its own, outside the lock;
     # the session goes in (or replaces the old one) between two packets.
+    if not tick_warmed(spec.params):
+        compile_cache.wait_for_filler(FILLER_WAIT_S)  # as a tool change (_warm_tick)
     with _short_gil_turns():
         session = build_session(spec)
         probe = Dispatcher()
@@ -177,6 +183,8 @@ def _change_engine(ctx: CommandContext, session_id: int, params: CuttingParams |
     bricks = None
     if materials is not None and not np.array_equal(materials.forbidden, current.forbidden):
         bricks = engine.forbidden_bricks_for(materials)
+    if params is not None and not tick_warmed(params):
+        _warm_tick(engine, params)
     with lock:
         session = _session(dispatcher, session_id)
         engine = session.engine
@@ -196,6 +204,17 @@ def _change_engine(ctx: CommandContext, session_id: int, params: CuttingParams |
             engine.set_materials(materials, bricks)
         if publish is not None:
             session.publish_bone(publish)
+
+
+def _warm_tick(engine: BoneEngine, params: CuttingParams) -> None:
+    """Load (or compile) the tick ``params``' burr needs, outside the loop's lock, before
+    the burr changes: the tick that follows must not. After a first start only the round
+    burr's was warmed; a ``burrforce compile`` filling the cache behind the server is waited
+    for, so the tick loads from the cache rather than compiling here a second time."""
+    compile_cache.wait_for_filler(FILLER_WAIT_S)
+    with _short_gil_turns():
+        # An engine of its own on the same bone: the same types, its own scratch buffers.
+        BoneEngine(engine.grid, engine.materials, params, engine.shaft).warm_up(False)
 
 
 def _start_recording(ctx: CommandContext, kwargs: dict) -> dict:

@@ -32,6 +32,7 @@ from ...proto.messages import (
     WRONG_STREAM,
     Pose,
 )
+from .. import compile_cache
 from . import wire
 from .bucket import TokenBucket
 from .session import Session
@@ -89,10 +90,14 @@ class Dispatcher:
         sent in a non-canonical form); then forget them and start counting from zero (the stream
         the warm-up used is ended; ``next_stream`` is as it was)."""
         wire.warm_up()
+        # Every burr's tick, the other shapes' too, so that a tool change mid-stream need
+        # not load kernels — once ``burrforce compile`` has filled the cache. Until then
+        # (a first start) only the sessions' own burrs: the rest would take the first
+        # session as long again to compile; a tool change waits for them instead
+        # (``commands``), off the packet path.
+        every_burr = compile_cache.is_complete()
         for session in self.sessions.values():
-            # Every burr's tick, the other shapes' too: a tool change mid-stream must not
-            # stall the loop compiling (or loading) kernels.
-            session.engine.warm_up()
+            session.engine.warm_up(every_burr)
             first = session.next_stream
             far = session.transform.point_out((-1e5, -1e5, -1e5))
             pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),

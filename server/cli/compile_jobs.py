@@ -1,0 +1,170 @@
+"""What ``burrforce compile`` runs to fill numba's cache: jobs, each the code path a command
+takes on first use, so exactly the signatures the server asks for are compiled.
+
+Jobs are independent unless one names another in ``after`` (it then loads what that one
+compiled instead of compiling it too), so ``compile_run`` runs them in parallel processes.
+:data:`FIRST_START` is what a hot loop needs before it serves a round burr: ``serve``
+compiles those first and the rest behind the running server.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Job:
+    """One group of kernels: ``run`` compiles (or loads) them; ``kernels`` is about how many
+    numba compiles on an empty cache (``numba:compile`` events, nested ones included: the
+    progress bar's scale; ``tests/test_compile_cache.py`` checks it); ``after``: jobs whose
+    kernels this one calls."""
+
+    name: str
+    run: Callable[[], None]
+    kernels: int
+    after: tuple[str, ...] = ()
+
+
+@contextmanager
+def _shared_workpiece() -> Iterator[object]:
+    """A reference to a small bone in shared memory, as the control plane hands one to a
+    hot loop (the tick's arrays then have the types they have there)."""
+    from ..bone import phantom
+    from ..bone.shared import publish, run_directory
+
+    folder = run_directory()
+    try:
+        yield publish(phantom("workpiece", 0.5), folder, "compile")
+    finally:  # the map outlives the file: unlinking it now is safe
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _tick(params) -> None:
+    from ..hotloop.spec import SessionSpec, build_session
+
+    with _shared_workpiece() as ref:
+        build_session(SessionSpec(bone=ref, params=params)).engine.warm_up(every_burr=False)
+
+
+def _tick_round() -> None:
+    """The bone tick for the round abrasive burr (the default session's)."""
+    from ..model.params import CuttingParams
+
+    _tick(CuttingParams())
+
+
+def _tick_other_burrs() -> None:
+    """The bone tick for every other burr (one set of types for all of them)."""
+    from ..model.params import CuttingParams
+    from ..model.shapes import Burr, Fluted, Sphere
+
+    params = CuttingParams()
+    _tick(params.with_(burr=Burr(Sphere(params.radius_mm), Fluted(n_flutes=6))))
+
+
+def _packet_path() -> None:
+    """The packet codec and the haptic stage: what a hot loop runs around the tick."""
+    from ..haptics.stage import warm_up as warm_haptics
+    from ..hotloop import wire
+
+    wire.warm_up()
+    warm_haptics()
+
+
+def _sessions() -> None:
+    """A hot loop's session (decode, tag, tick, encode, every path of a packet, on a bone
+    in shared memory) and the control plane's reads of that bone (status, snapshots for
+    exports and the journal)."""
+    from ..bone.shared import SharedBone
+    from ..hotloop.dispatch import Dispatcher
+    from ..hotloop.spec import SessionSpec, build_session
+
+    with _shared_workpiece() as ref:
+        dispatcher = Dispatcher()
+        dispatcher.add(build_session(SessionSpec(bone=ref)))
+        dispatcher.warm_up()
+        del dispatcher
+        reader = SharedBone(ref)
+        reader.snapshot().grid.bone_volume_by_label_mm3()
+        reader.close()
+
+
+def _phantoms() -> None:
+    from ..bone import PHANTOMS, phantom
+
+    for name in PHANTOMS:
+        phantom(name)
+
+
+def _meshes() -> None:
+    from ..bone import phantom
+    from ..bone.mesh import surface_mesh
+
+    grid = phantom("workpiece", 0.5).grid
+    surface_mesh(grid, step=2)
+    surface_mesh(grid, step=1, labels=[1])
+
+
+def _bone_files() -> None:
+    """CT (int16 HU), label (uint8) and density (float32) volumes, as the loaders read them."""
+    from ..bone import LoadOptions, load_bone
+
+    rng = np.random.default_rng(0)
+    volumes = {"ct": rng.integers(-1000, 2000, (12, 12, 12)).astype(np.int16),
+               "labels": rng.integers(0, 3, (12, 12, 12)).astype(np.uint8),
+               "density": rng.random((12, 12, 12)).astype(np.float32)}
+    with tempfile.TemporaryDirectory(prefix="burrforce-compile-") as folder:
+        for kind, volume in volumes.items():
+            path = Path(folder) / f"{kind}.npy"
+            np.save(path, volume)
+            load_bone(path, LoadOptions(kind=kind, spacing_mm=(0.2, 0.2, 0.2)))
+
+
+def _model() -> None:
+    """The cutting model alone (``experiment``, ``bench model``), round and other burrs."""
+    from ..model import CuttingModel, CuttingParams
+    from ..model.revolved import RevolvedModel
+    from ..model.shapes import Burr, Cylinder, Fluted
+
+    centre, axis = np.array([0.0, 0.0, 1.5]), np.array([0.0, 0.0, 1.0])
+    feed = np.array([1.0, 0.0, 0.0])
+    CuttingModel(CuttingParams()).evaluate(centre, axis, feed, 80_000.0)
+    RevolvedModel(Burr(Cylinder(1.0, 4.0), Fluted(6))).evaluate(centre, axis, feed, 80_000.0)
+
+
+def _device_loop() -> None:
+    from ..devices.falcon.device import _commands_for_force, _sense
+    from ..devices.render import CouplingRenderer
+    from ..haptics.profiles import PROFILES
+
+    CouplingRenderer(PROFILES["generic"]).warm_up()
+    grip_m = np.array([0.0, 0.0, 0.11])  # near the Falcon's workspace centre
+    _sense(np.zeros(3), grip_m.copy())
+    _commands_for_force(grip_m, np.zeros(3))
+
+
+TICK_ROUND = "tick, round burr"
+PACKET_PATH = "packets and haptics"
+SESSIONS = "sessions"
+
+#: In the order a server needs them.
+JOBS: tuple[Job, ...] = (
+    Job(TICK_ROUND, _tick_round, 109),
+    Job(PACKET_PATH, _packet_path, 35),
+    Job(SESSIONS, _sessions, 17, after=(TICK_ROUND, PACKET_PATH)),
+    Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
+    Job("phantoms", _phantoms, 7),
+    Job("surface meshes", _meshes, 1),
+    Job("bone files", _bone_files, 9),
+    Job("cutting model", _model, 24),
+    Job("device loop", _device_loop, 55),
+)
+#: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr.
+FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS)
