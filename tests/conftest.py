@@ -99,6 +99,9 @@ SLOW: tuple[str, ...] = (
     "test_compile_cache.py::test_compile_fills_the_cache_it_is_given",
     "test_compile_cache.py::test_after_compile_processes_only_load_even_two_at_once",
     "test_compile_cache.py::test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache",
+    # serve on an empty cache until its background compile is done, then again; the jobs,
+    # their progress and the tool change after a first start stay in the fast tier.
+    "test_first_start.py::test_a_first_serve_compiles_with_progress_then_the_rest_behind_it",
     # 100 000 datagrams; the live server's other tests stay.
     "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
     # The schema fuzzers (schemathesis over every route); the module's token test stays.
@@ -133,6 +136,25 @@ def _full_run(config: pytest.Config) -> bool:
 def pytest_configure(config: pytest.Config) -> None:
     # Before the test modules are imported: their @settings(max_examples=examples(n)) read it.
     hypothesis_profiles.load(_full_run(config))
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Fill the kernel cache first if ``burrforce compile`` has not (a fresh machine): once,
+    in its parallel processes, instead of in whichever test first needs each kernel — there
+    a hot loop starting on a cold cache would compile for longer than the test waits. Outside
+    coverage (pytest-cov's COV_CORE_* would trace numba's compiler: several times slower)."""
+    if compile_cache.is_complete():
+        return
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("COV_CORE_")}
+    print("\nburrforce: compiling the kernels into the test cache first (once)...", flush=True)
+    done = subprocess.run([sys.executable, "-m", "burrforce.server.cli", "compile", "--quiet"],
+                          env=env, capture_output=True, text=True, timeout=900)
+    if done.returncode != 0:
+        pytest.exit(f"burrforce compile failed:\n{done.stdout}{done.stderr}", returncode=3)
+    print(f"burrforce: {done.stdout.strip()}", flush=True)
 
 
 def pytest_report_header(config: pytest.Config) -> str:

@@ -1,0 +1,185 @@
+"""A first start on a machine: the kernels a session needs compiled in parallel processes
+with progress shown (and nothing shown when they load from the cache), the rest compiled
+behind the running server, the cache marked complete only when every job has run, and a hot
+loop that warmed only its own burr loading the other burr's tick off the packet path when
+the tool changes."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from burrforce.server import compile_cache
+from burrforce.server.bench.serve_process import spawn_serve
+from burrforce.server.cli.compile_jobs import FIRST_START, JOBS, PACKET_PATH
+from burrforce.server.cli.compile_run import run_jobs
+
+
+def test_the_complete_mark_is_per_cache_and_cpu(tmp_path, monkeypatch):
+    monkeypatch.delenv("NUMBA_CPU_NAME", raising=False)
+    assert not compile_cache.is_complete(tmp_path)
+    compile_cache.mark_complete(tmp_path)
+    assert compile_cache.is_complete(tmp_path)
+    assert not compile_cache.is_complete(tmp_path / "other")
+    monkeypatch.setenv("NUMBA_CPU_NAME", "generic")  # an image's cache for any machine
+    assert not compile_cache.is_complete(tmp_path)
+
+
+def test_one_compiler_fills_a_cache_at_a_time(tmp_path):
+    holder = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(f"""
+            import sys, time
+            from pathlib import Path
+            from burrforce.server import compile_cache
+            with compile_cache.filling(directory=Path({str(tmp_path)!r})) as held:
+                print(held, flush=True)
+                sys.stdin.readline()
+            """)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "True"
+        with compile_cache.filling(wait=False, directory=tmp_path) as held:
+            assert held is False
+        t0 = time.monotonic()
+        assert compile_cache.wait_for_filler(0.3, tmp_path) is False
+        assert time.monotonic() - t0 >= 0.3
+        holder.stdin.write("\n")
+        holder.stdin.flush()
+        holder.wait(timeout=30)
+        assert compile_cache.wait_for_filler(5.0, tmp_path) is True
+        with compile_cache.filling(wait=False, directory=tmp_path) as held:
+            assert held is True
+    finally:
+        holder.kill()
+
+
+def test_every_first_start_job_is_a_job_and_waits_only_for_jobs():
+    names = {job.name for job in JOBS}
+    assert set(FIRST_START) <= names
+    for job in JOBS:
+        assert set(job.after) <= names and job.name not in job.after
+        assert job.kernels > 0
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the pool's processes inherit it
+    return cache
+
+
+def test_compiling_shows_each_job_and_loading_shows_nothing(empty_cache, capsys):
+    lines: list[str] = []
+    results = run_jobs([PACKET_PATH], 1, lines.append, bar=False)
+    assert [r.name for r in results] == [PACKET_PATH]
+    assert results[0].compiled > 10
+    assert len(lines) == 1 and lines[0].startswith(
+        f"  compiled {PACKET_PATH}: {results[0].compiled} kernels in ")
+    # The same job again: every kernel loads from the cache, and nothing is said.
+    lines.clear()
+    again = run_jobs([PACKET_PATH], 1, lines.append, bar=False)
+    assert again[0].compiled == 0 and lines == []
+    assert capsys.readouterr().out == ""
+
+
+def test_the_bar_names_what_compiles_with_a_count_and_an_estimate(empty_cache, capsys):
+    run_jobs([PACKET_PATH], 1, print, bar=True)
+    out = capsys.readouterr().out
+    assert f"compiling {PACKET_PATH}" in out
+    assert "kernels [" in out and "<" in out  # n/~total kernels [elapsed<remaining]
+
+
+def test_a_job_that_fails_fails_the_run(empty_cache):
+    with pytest.raises(ValueError, match="unknown compile jobs: nope"):
+        run_jobs(["nope"], 1, print, bar=False)
+
+
+#: Run in a process of its own: which ticks a process has warmed is per process.
+_TOOL_CHANGE = textwrap.dedent("""
+    import threading, socket
+    from numba.core import event
+    from burrforce.server import compile_cache
+    from burrforce.server.bone.engine import tick_warmed
+    from burrforce.server.bone import phantom
+    from burrforce.server.bone.shared import publish, run_directory
+    from burrforce.server.hotloop.commands import COMMANDS, CommandContext
+    from burrforce.server.hotloop.dispatch import Dispatcher
+    from burrforce.server.hotloop.spec import SessionSpec, build_session
+    from burrforce.server.model.params import CuttingParams
+    from burrforce.server.model.shapes import Burr, Cylinder, Fluted
+
+    assert not compile_cache.is_complete()
+    ref = publish(phantom("workpiece", 0.5), run_directory(), "t")
+    dispatcher = Dispatcher()
+    dispatcher.add(build_session(SessionSpec(bone=ref)))
+    dispatcher.warm_up()
+    shaped = CuttingParams().with_(burr=Burr(Cylinder(2.0, 3.0), Fluted(6)))
+    print("warmed", tick_warmed(CuttingParams()), tick_warmed(shaped), flush=True)
+
+    compiled = []
+    class Count(event.Listener):
+        def on_start(self, ev): pass
+        def on_end(self, ev): compiled.append(ev.data["dispatcher"].py_func.__name__)
+    event.register("numba:compile", Count())
+    ctx = CommandContext(dispatcher, threading.Lock(), threading.Event(),
+                         socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+    COMMANDS["set_engine"](ctx, {"session_id": 1, "params": shaped})
+    print("after the change", tick_warmed(shaped), flush=True)
+    engine = dispatcher.sessions[1].engine
+    before = len(compiled)
+    import numpy as np
+    engine.step_raw(np.full(3, -1e5), np.array([0.0, 0.0, 1.0]), np.zeros(3), 1e5)
+    print("compiled by the next tick", len(compiled) - before, flush=True)
+    """)
+
+
+def test_a_tool_change_loads_the_other_tick_before_the_burr_changes(tmp_path):
+    """A hot loop on a cache that is not complete warms its session's round burr only; a
+    change to a shaped burr (the command the control plane sends) loads that tick outside
+    the loop's lock, so the tick after it compiles nothing."""
+    source = compile_cache.cache_dir()
+    assert source is not None and compile_cache.is_complete(source)  # conftest filled it
+    cache = tmp_path / "cache"
+    shutil.copytree(source, cache, ignore=shutil.ignore_patterns("complete-*", "*.lock"))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    done = subprocess.run([sys.executable, "-c", _TOOL_CHANGE], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "warmed True False" in done.stdout
+    assert "after the change True" in done.stdout
+    assert "compiled by the next tick 0" in done.stdout
+
+
+def test_a_first_serve_compiles_with_progress_then_the_rest_behind_it(tmp_path):
+    """Empty cache and HOME: serve compiles what its session needs (a line per job when not
+    on a terminal), gets ready, and fills the rest of the cache in the background, which
+    marks it complete; the next start says nothing about compiling."""
+    home = tmp_path / "home"
+    home.mkdir()
+    cache = tmp_path / "cache"
+    env = {"HOME": str(home), "NUMBA_CACHE_DIR": str(cache), "XDG_CACHE_HOME": ""}
+    serve = spawn_serve(tmp_path, env=env, timeout_s=600)
+    try:
+        banner = serve.banner
+        assert "first start on this machine: compiling" in banner
+        assert "  compiled tick, round burr: " in banner
+        deadline = time.monotonic() + 600
+        while not compile_cache.is_complete(cache) and time.monotonic() < deadline:
+            time.sleep(1.0)
+    finally:
+        code, after = serve.stop()
+    assert code == 0, banner + after
+    assert "compiling the other kernels in the background" in banner + after
+    assert compile_cache.is_complete(cache), (tmp_path / "data" / "compile.log").read_text()
+    again = spawn_serve(tmp_path, env=env, timeout_s=120)
+    code, after = again.stop()
+    assert code == 0
+    printed = again.banner + after
+    assert "first start" not in printed and "compiling" not in printed
+    assert "compiled " not in printed
