@@ -31,6 +31,7 @@ from ..api.config import (
     is_loopback,
     load_config,
 )
+from ..api.data_lock import DataDirLock
 from ..argtypes import float_in, int_at_least, int_in
 from ..haptics.profiles import PROFILES
 from .client_demo import EXIT_GAVE_WAY
@@ -270,6 +271,10 @@ def main(args: argparse.Namespace) -> int:
     key_hex = None
     if not config.no_auth:
         key_hex = parse_key(config.key).hex() if config.key else None
+    # Before anything in the data directory is read (the token, the journal): a second
+    # server there would resume the first one's sessions.
+    data_lock = DataDirLock(Path(config.data_dir))
+    data_lock.acquire()
     token, new_token = resolve_token(config)
     bone = config.bone
     say = functools.partial(print, flush=True)
@@ -345,6 +350,7 @@ def main(args: argparse.Namespace) -> int:
                                       token)
             context["conn"] = c
             context["path"] = connection.write(c, args.connection_file)
+            data_lock.note(stack.url, f"{udp_host}:{udp_port}")
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device, _pool_line(plane, session))
             if first_start:
@@ -371,6 +377,7 @@ def main(args: argparse.Namespace) -> int:
         stack.stop()
         if conn_path is not None:
             connection.remove(conn_path, only_if=conn)
+        data_lock.release()
     if stack.supervisor is not None and stack.supervisor.state == "lost":
         from ..api.supervisor import EXIT_LOOP_LOST
 
