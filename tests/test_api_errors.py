@@ -140,3 +140,33 @@ def test_every_kind_and_every_domain_error_has_a_status():
     for cls in errors.HTTP_STATUS:
         assert 400 <= errors.http_status(cls) < 600
     assert errors.http_status(errors.ApiError("no kind")) == 500
+
+
+def test_a_misspelled_parameter_gets_the_closest_valid_name(api):
+    sid = _session(api)["id"]
+    try:
+        r = api.patch(f"/sessions/{sid}/parameters", json={"Us": 900})
+        assert r.status_code == 422, r.text
+        assert r.json()["detail"][0]["loc"] == ["body", "Us"]
+        assert "did you mean `us_n_mm2`?" in _detail(r)
+        r = api.patch(f"/sessions/{sid}/parameters", json={"radius_m": 1.0})
+        assert "did you mean `radius_mm`?" in _detail(r)
+        # Nothing close: pydantic's message alone.
+        r = api.patch(f"/sessions/{sid}/parameters", json={"zzzz": 1})
+        assert r.status_code == 422 and "did you mean" not in _detail(r)
+    finally:
+        api.delete(f"/sessions/{sid}")
+
+
+def test_a_body_not_sent_as_json_gets_a_hint_about_the_header(api):
+    sid = _session(api)["id"]
+    try:
+        r = api.patch(f"/sessions/{sid}/parameters", content=b'{"us_n_mm2": 900}',
+                      headers={"Content-Type": "text/plain"})
+        assert r.status_code == 422, r.text
+        assert "Content-Type: application/json" in _detail(r)
+        # Sent as JSON, the same body is taken.
+        r = api.patch(f"/sessions/{sid}/parameters", json={"us_n_mm2": 900})
+        assert r.status_code == 200, r.text
+    finally:
+        api.delete(f"/sessions/{sid}")

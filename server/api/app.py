@@ -29,6 +29,7 @@ from .plane import ControlPlane
 from .sources import SourceError
 from .supervisor import Supervisor, worker_state
 from .ui_pages import add_ui_pages
+from .validation_hints import body_fields, explained, route_of
 
 API_PREFIX = "/v1"
 #: The API's routers under API_PREFIX, in the order they are mounted, and whether each needs
@@ -91,7 +92,9 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
+        fields = body_fields(route_of(request))
+        json_body = "json" in request.headers.get("content-type", "")
+        errors = [{"loc": list(e.get("loc", ())), "msg": explained(e, fields, json_body),
                    "type": e.get("type", "")} for e in exc.errors()]
         return JSONResponse({"detail": errors}, status_code=422)
 
