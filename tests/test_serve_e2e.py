@@ -125,6 +125,8 @@ def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
         while "has been quiet" not in seen:
             seen += lines.get(timeout=max(deadline - time.monotonic(), 0.1))
         assert "--demo: another client streams on session" in seen
+        # serve's status line, every few seconds while packets arrive: the demo's too.
+        assert "packets/s  |F|" in seen
         # Stopped as Ctrl-C or `timeout` stop it: the signal reaches the whole process group,
         # so the groove being cut ends (killed) a moment before serve begins to stop.
         deadline = time.monotonic() + 30

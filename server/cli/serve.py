@@ -355,10 +355,17 @@ def main(args: argparse.Namespace) -> int:
                     context["path"], args.haptic_device, _pool_line(plane, session))
             if first_start:
                 context["filler"] = _start_filler(say, Path(config.data_dir))
+            def report() -> None:
+                _report(stack.stats, session.id, done, say, plane.devices)
+
             if args.demo:
+                # The status lines from the end of the first groove's table on, beside the
+                # demo's later grooves (which run until the server stops).
                 _run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
-                          session.id)
-            _report(stack.stats, session.id, done, say, plane.devices)
+                          session.id, threading.Thread(target=report, name="burrforce-status",
+                                                       daemon=True).start)
+            else:
+                report()
 
         threading.Thread(target=announce, name="burrforce-announce", daemon=True).start()
         # uvicorn handles SIGINT/SIGTERM while it runs, then restores these handlers and
@@ -489,15 +496,16 @@ DEMO_LANES_MM = (3.0, -3.0, 6.0, -6.0)
 
 
 def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None,
-              url: str, plane, session_id: int) -> None:
+              url: str, plane, session_id: int, after_first=lambda: None) -> None:
     """The demo's grooves on ``session_id``: one at once, then one every ``DEMO_EVERY_S``.
     They give the session's stream way to any other client (a person's `client demo`, an
     engine) and wait to go on until the session has had no other traffic for a whole
     interval: a session has one stream, and two clients taking it back and forth both lose
-    their packets."""
+    their packets. ``after_first`` runs once the first groove's table is printed."""
     say(f"--demo: running `{burrforce_command()} client demo` against this server...")
     x_mm, y_mm = demo_start_mm(bone_info)
     code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
+    after_first()
     if code is None:
         return
     say(f"--demo finished (exit {code}); the server keeps running.")
