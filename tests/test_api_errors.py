@@ -170,3 +170,13 @@ def test_a_body_not_sent_as_json_gets_a_hint_about_the_header(api):
         assert r.status_code == 200, r.text
     finally:
         api.delete(f"/sessions/{sid}")
+
+
+def test_a_401_says_where_the_token_is(stack):
+    r = httpx.get(stack.url + "/v1/sessions", timeout=30.0)
+    assert r.status_code == 401
+    detail = r.json()["detail"]
+    assert str(stack.config.data_dir / "token") in detail
+    r = httpx.get(stack.url + "/v1/sessions", timeout=30.0,
+                  headers={"Authorization": "Bearer wrong"})
+    assert r.status_code == 401 and str(stack.config.data_dir / "token") in r.json()["detail"]

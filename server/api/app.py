@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hmac
 import time
+from pathlib import Path
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -22,6 +23,7 @@ from . import (
     routes_sessions,
     routes_telemetry,
 )
+from .config import TOKEN_FILE
 from .docs_pages import add_docs_pages
 from .errors import ApiError, Invalid, Unauthorized, http_status
 from .metrics import LoopStats, registry
@@ -47,14 +49,28 @@ ROUTERS = (
 _bearer = HTTPBearer(auto_error=False, description="the token `burrforce serve` printed")
 
 
+def token_whereabouts(config: object) -> str:
+    """Where the REST token is to be found, for a message that asks for it."""
+    if getattr(config, "token", None):
+        return "the token this server was given (serve --token or BURRFORCE_TOKEN)"
+    data_dir = getattr(config, "data_dir", None)
+    if data_dir is None:
+        return "the token `burrforce serve` printed"
+    path = Path(data_dir).expanduser() / TOKEN_FILE
+    return (f"the token is in {path} on the server's machine (`burrforce serve` shows it at "
+            "its first start)")
+
+
 def create_app(plane: ControlPlane, token: str, stats: LoopStats,
                supervisor: Supervisor | None = None) -> FastAPI:
     """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
+    where = token_whereabouts(plane.config)
+
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
         if credentials is None or not hmac.compare_digest(credentials.credentials.encode(),
                                                           token.encode()):
-            raise Unauthorized("missing or wrong bearer token (Authorization: Bearer TOKEN; "
-                               "`burrforce serve` printed it, or see its --token)")
+            raise Unauthorized(f"missing or wrong bearer token (Authorization: Bearer TOKEN): "
+                               f"{where}")
 
     app = FastAPI(
         title="burrforce control plane", version=__version__,

@@ -51,6 +51,8 @@ else:  # pragma: no cover
 DEFAULT_HTTP_PORT = 47811
 DEFAULT_UDP_PORT = 47810
 ENV_PREFIX = "BURRFORCE_"
+#: The REST token's file in the data directory (mode 0600), made at the first start.
+TOKEN_FILE = "token"
 
 
 def is_loopback(host: str) -> bool:

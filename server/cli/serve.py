@@ -27,6 +27,7 @@ from .. import compile_cache
 from ..api.config import (
     DEFAULT_HTTP_PORT,
     DEFAULT_UDP_PORT,
+    TOKEN_FILE,
     ServeConfig,
     is_loopback,
     load_config,
@@ -39,7 +40,6 @@ from .device import add_loop_options, loop_config
 from .invocation import burrforce_command
 
 STATUS_INTERVAL_S = 2.0
-TOKEN_FILE = "token"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

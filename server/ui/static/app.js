@@ -54,8 +54,9 @@ async function start() {
     await call("GET", "/sessions");
   } catch (e) {
     if (e instanceof ApiError && e.status === 401) {
-      showLogin(getToken() ? "The server refused this token (401): enter the token `burrforce serve` printed."
-        : "This page needs the server's REST token: `burrforce serve` printed it (or open the link it printed).");
+      // The server's own 401 says where its token is kept (its file, or --token).
+      showLogin(getToken() ? `The server refused this token (401): ${e.detail}`
+        : `This page needs the server's REST token: ${e.detail}`);
       return;
     }
     showLogin(`The server did not answer: ${e.message}`);
