@@ -54,11 +54,16 @@ def test_serve_cut_change_us_over_rest_and_export(tmp_path):
             r = api.patch(f"/sessions/{c.session}/parameters", json={"us_n_mm2": 1610.2})
             assert r.status_code == 200, r.text
             doubled = _demo(env, conn, tmp_path, 4.0)
-            # The demo's model line still uses the thesis's Us; the server now cuts with 2×.
+            # The server now cuts with 2× Us, and the demo's model line is the session's.
             assert doubled["steady_feed_N"] == pytest.approx(2 * result["steady_feed_N"],
                                                              rel=0.05)
             assert doubled["steady_normal_N"] == pytest.approx(
                 2 * result["steady_normal_N"], rel=0.05)
+            assert result["model_parameters"] == doubled["model_parameters"] == "session"
+            assert doubled["model_feed_N"] == pytest.approx(2 * result["model_feed_N"],
+                                                            rel=1e-3)
+            assert doubled["steady_feed_N"] == pytest.approx(doubled["model_feed_N"],
+                                                             rel=0.05)
             r = api.get(f"/sessions/{c.session}/export/volume")
             assert r.status_code == 200
             (tmp_path / "carved.nrrd").write_bytes(r.content)

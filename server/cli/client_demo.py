@@ -17,17 +17,57 @@ from ..argtypes import float_in, int_in
 
 
 def model_expectation(depth_mm: float, feed_mm_s: float, rpm: float, angle_deg: float,
-                      radius_mm: float) -> tuple[float, float, float]:
-    """(feed, lateral, normal) N of the flat-workpiece model for the same cut in the
-    thesis's cortical bone."""
+                      radius_mm: float, us_n_mm2: float | None = None,
+                      k: float | None = None) -> tuple[float, float, float]:
+    """(feed, lateral, normal) N of the flat-workpiece model for the same cut, with ``Us``
+    and ``K`` (default: the thesis's cortical bone)."""
     # Here, not at the top: the model's kernels load only once the groove is cut.
     from ..model import CuttingModel, CuttingParams
     from ..model.cases import CuttingCase
 
     case = CuttingCase("parallel", angle_deg, radius_mm, depth_mm, feed_mm_s, rpm)
-    model = CuttingModel(CuttingParams(radius_mm=radius_mm))
-    r = model.evaluate(case.centre_mm, case.axis, case.feed_velocity_mm_s, rpm)
+    params = CuttingParams(radius_mm=radius_mm)
+    params = params.with_(us_n_mm2=params.us_n_mm2 if us_n_mm2 is None else us_n_mm2,
+                          k=params.k if k is None else k)
+    r = CuttingModel(params).evaluate(case.centre_mm, case.axis, case.feed_velocity_mm_s, rpm)
     return (r.feed_N, r.lateral_N, r.normal_N)
+
+
+def session_parameters(conn: connection.Connection | None, host: str, port: int,
+                       session: int) -> dict | None:
+    """The session's parameters over REST (``GET /v1/sessions/ID/parameters``), when the
+    connection file is that of the server the demo cut on and names its REST URL and token;
+    else None."""
+    if (conn is None or not conn.http_url or not conn.token or conn.session != session
+            or (conn.host, conn.udp_port) != (host, port)):
+        return None
+    from ...client.rest import BurrRest, RestError
+
+    try:
+        with BurrRest(conn.http_url, conn.token, timeout_s=5.0) as rest:
+            return rest.parameters(session)
+    except (RestError, OSError, ValueError):
+        return None
+
+
+def model_line(parameters: dict | None, radius_mm: float) -> tuple[str, dict]:
+    """What the model line says it compares with, and the Us/K arguments it takes: the
+    session's own material when its parameters were read and its burr is the demo's round
+    one, else the thesis's cortical bone, saying why."""
+    if parameters is None:
+        return ("flat-workpiece model, the thesis's cortical bone (the session's own Us and "
+                "K were not read: no REST URL and token in the connection file)", {})
+    burr = parameters.get("burr") or {}
+    if (burr.get("shape", {}).get("kind") != "sphere"
+            or burr.get("cutter", {}).get("kind") != "abrasive"):
+        return ("flat-workpiece model, the thesis's cortical bone and a round burr of "
+                f"R {radius_mm:g} mm (the session cuts with another burr: compare with care)",
+                {})
+    us, k = parameters.get("us_n_mm2"), parameters.get("k")
+    if us is None or k is None:
+        return "flat-workpiece model, the thesis's cortical bone", {}
+    return (f"flat-workpiece model, the session's Us {us:g} N/mm² and K {k:g}",
+            {"us_n_mm2": float(us), "k": float(k)})
 
 
 # -- the command --------------------------------------------------------------------------------
@@ -77,6 +117,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 #: ``client demo``'s exit status when it gave the session's stream way (``--give-way``).
 EXIT_GAVE_WAY = 4
+
+
+def _connection(args: argparse.Namespace) -> connection.Connection | None:
+    try:
+        return connection.read(args.connection)
+    except (ValueError, OSError):
+        return None
 
 
 def _endpoint(args: argparse.Namespace) -> tuple[str, int, int, str | None, str,
@@ -133,9 +180,12 @@ def main(args: argparse.Namespace) -> int:
         except ServerGone as error:  # before or after the groove: nothing to go on with
             raise RuntimeError(str(error)) from None
     result = summary(run)
-    expected = model_expectation(args.depth_mm, args.feed_mm_s, args.rpm, args.angle_deg,
+    label, material = model_line(session_parameters(_connection(args), host, port, session),
                                  args.radius_mm)
+    expected = model_expectation(args.depth_mm, args.feed_mm_s, args.rpm, args.angle_deg,
+                                 args.radius_mm, **material)
     result["model_feed_N"], result["model_lateral_N"], result["model_normal_N"] = expected
+    result["model_parameters"] = "session" if material else "thesis"
     if args.plot is not None:
         result["plot"] = str(plot(run, args.plot))
     if args.json:
@@ -151,8 +201,8 @@ def main(args: argparse.Namespace) -> int:
             "proxy cut where the coupling spring's pull met the bone's resistance, not at the "
             "demo's 0.5 mm, so the model's forces for a 0.5 mm cut do not apply")
     else:
-        say(f"flat-workpiece model, cortical bone: feed {expected[0]:.3f} N, lateral "
-            f"{expected[1]:.3f} N, normal {expected[2]:.3f} N")
+        say(f"{label}: feed {expected[0]:.3f} N, lateral {expected[1]:.3f} N, normal "
+            f"{expected[2]:.3f} N")
     if result["forbidden_ticks"]:
         say(f"warning: the burr touched a forbidden structure in {result['forbidden_ticks']} "
             "ticks")
