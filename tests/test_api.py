@@ -291,6 +291,11 @@ def test_materials_and_forbidden_events(stack, api):
     event = state["events"][0]
     assert event["material"] == "cortical" and len(event["position_mm"]) == 3
     assert state["removed_mm3"]["cortical"] > 0 and state["bone_version"] > 0
+    # The loop's clock when it read the counters: the live view's packet rate is
+    # Δaccepted / Δt_loop_s, not skewed by how long each request took.
+    _groove(stack, s, 1.0, 30)
+    later = api.get(f"/sessions/{sid}/state").json()
+    assert later["t_loop_s"] > state["t_loop_s"] and later["accepted"] >= state["accepted"] + 30
     api.delete(f"/sessions/{sid}")
 
 

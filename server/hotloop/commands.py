@@ -17,6 +17,7 @@ from __future__ import annotations
 import socket
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -108,6 +109,9 @@ def _session_state(ctx: CommandContext, kwargs: dict) -> dict:
         events = list(session.engine.events)[-n:] if n > 0 else []
         stats = session.stats()
         stats["haptics"] = session.haptics.snapshot()
+        # When the counters were read, on the loop's clock: a rate from two states is then
+        # the loop's own, not skewed by how long each request took to come back.
+        stats["t_loop_s"] = time.monotonic()
     stats.pop("tick_times_us")
     stats["events"] = [e.__dict__ for e in events]
     return stats

@@ -108,12 +108,14 @@ async function sessionRow(s) {
     call("GET", `/sessions/${s.id}/state?max_events=0`),
     call("GET", `/sessions/${s.id}/telemetry`),
   ]);
-  const now = performance.now();
   if (st.status === "fulfilled") {
     const prev = state.rates.get(s.id);
+    // The hot loop's own clock (t_loop_s, when it read the counters), not the page's: two
+    // requests that take different times to come back would skew the rate.
+    const now = st.value.t_loop_s;
     row.forbidden = st.value.forbidden_events;
     row.removed = Object.values(st.value.removed_mm3 || {}).reduce((a, b) => a + b, 0);
-    if (prev && now > prev.at) row.rate = Math.max(0, (st.value.accepted - prev.accepted) / ((now - prev.at) / 1000));
+    if (prev && now > prev.at) row.rate = Math.max(0, (st.value.accepted - prev.accepted) / (now - prev.at));
     state.rates.set(s.id, { accepted: st.value.accepted, at: now });
   }
   if (tel.status === "fulfilled") row.status = tel.value.status_names;

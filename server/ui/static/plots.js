@@ -2,6 +2,8 @@
 // as a classic script (window.uPlot).
 
 const WINDOW_S = 10;
+/** A time this far back means another clock (a restarted server), not a torn sample, s. */
+const RESTART_S = 5;
 const COLORS = {
   hand: "#f2f2f2", feed: "#4fa3ff", lateral: "#ffb347", normal: "#7bd66f",
   amplitude: "#e070e0", frequency: "#6fd6d6", tick: "#4fa3ff", p99: "#ff6f6f",
@@ -97,13 +99,24 @@ export class LivePlots {
 
   /** Adds one telemetry sample (GET …/telemetry's JSON). */
   push(sample) {
+    // A sample before any packet has no receive time: nothing to place on the time axis.
+    if (!(sample.t_recv_s > 0)) return;
     if (this.t0 === null) this.t0 = sample.t_recv_s;
     const t = sample.t_recv_s - this.t0;
+    const [first] = this.charts;
+    const last = first && first.data[0].length ? first.data[0][first.data[0].length - 1] : null;
+    if (last !== null && t < last) {
+      // Far back: the clock restarted (another server): start over. Just behind: a sample
+      // read while the loop wrote it (the telemetry allows torn reads): skipped, not a
+      // reason to drop the window.
+      if (last - t < RESTART_S) return;
+      this.clear();
+      this.t0 = sample.t_recv_s;
+      this.push(sample);
+      return;
+    }
     for (const c of this.charts) {
       const [xs] = c.data;
-      if (xs.length && t < xs[xs.length - 1]) {  // the clock restarted (another server)
-        for (const column of c.data) column.length = 0;
-      }
       xs.push(t);
       c.spec.series.forEach((s, i) => c.data[i + 1].push(s.get(sample)));
       let drop = 0;
