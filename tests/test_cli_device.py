@@ -50,6 +50,29 @@ def test_device_test_reports_rate_and_jitter():
     assert hi[2] - lo[2] > 1.0
 
 
+def test_device_test_sim_moves_its_hand_and_the_spring_follows():
+    out = _run("device", "test", "sim", "--seconds", "1.5", "--json")
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert "the simulated hand moves the grip" in out.stderr
+    assert "move the grip to feel it" not in out.stderr
+    lo, hi = report["range_mm"]["min"], report["range_mm"]["max"]
+    assert hi[0] - lo[0] > 2.0 and hi[1] - lo[1] > 2.0  # round a circle
+    assert report["peak_force_N"] > 0.05
+    assert isinstance(report["warnings"], list)
+
+
+def test_a_servo_that_misses_its_rating_is_warned_about():
+    from burrforce.server.devices.selftest import servo_warnings
+
+    assert servo_warnings(1000.0, 1000.0, 1100.0, 3000.0) == []
+    slow = servo_warnings(702.0, 1000.0, 8109.0, 143_000.0)
+    assert len(slow) == 3
+    assert "702 Hz, below the device's rated 1000 Hz" in slow[0]
+    assert "p99 is 8109 µs" in slow[1] and "143.0 ms" in slow[2]
+    assert servo_warnings(None, 1000.0, None, None) == []
+
+
 def test_device_commands_refuse_bad_input_clearly():
     for args, words in ((("device", "test", "nosuch"), "unknown haptic device"),
                         (("device", "test", "sim:speed"), "options are key=value"),

@@ -162,6 +162,8 @@ def _test(args: argparse.Namespace) -> int:
               f"p99 {report['period_p99_us'] or 0:.0f} µs, max "
               f"{report['period_max_us'] or 0:.0f} µs; peak force "
               f"{report['peak_force_N']:.2f} N; buttons seen {report['buttons_seen']:#x}")
+    for warning in report.get("warnings", ()):
+        say(f"warning: {warning}")
     return 0
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..haptics.limits import limit_force
 from .base import DeviceState
-from .registry import create_device
+from .registry import create_device, parse_spec
 
 #: The spring's share of the device's rated stiffness and damping: gentle, clearly felt.
 SPRING_SHARE = 0.1
@@ -25,11 +25,43 @@ FORCE_SHARE = 0.25
 RAMP_S = 1.0
 
 
+#: The servo is said to miss its rating below this share of the rated rate, or when its
+#: period's p99 exceeds ``JITTER_P99`` rated periods or its longest ``JITTER_MAX`` of them.
+RATE_SHARE = 0.95
+JITTER_P99 = 2.0
+JITTER_MAX = 10.0
+
+
+def servo_warnings(rate_hz: float | None, rated_hz: float, p99_us: float | None,
+                   max_us: float | None) -> list[str]:
+    """What the measured servo loop missed of the device's rating, in words (none: kept)."""
+    if not rate_hz or rated_hz <= 0:
+        return []
+    period_us = 1e6 / rated_hz
+    found = []
+    if rate_hz < RATE_SHARE * rated_hz:
+        found.append(f"the servo ran at {rate_hz:.0f} Hz, below the device's rated "
+                     f"{rated_hz:g} Hz: the machine is busy or slow for this device (close "
+                     "other work; serve --realtime gives the device loop a real-time priority)")
+    if p99_us is not None and p99_us > JITTER_P99 * period_us:
+        found.append(f"the servo period's p99 is {p99_us:.0f} µs, over {JITTER_P99:g}× the "
+                     f"rated {period_us:.0f} µs: the force will feel rough")
+    if max_us is not None and max_us > JITTER_MAX * period_us:
+        found.append(f"the longest servo period was {max_us / 1e3:.1f} ms ({max_us / period_us:.0f}"
+                     " rated periods): a stall a hand can feel")
+    return found
+
+
 def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
                  home_timeout_s: float = 60.0,
                  say: Callable[[str], None] = print) -> dict:
     """Run the test; returns the report (JSON-ready). The force is zero again on return,
     also after Ctrl-C or an error (``device.close``)."""
+    name, options = parse_spec(spec)
+    simulated = name == "sim"
+    if simulated and "hand" not in options:
+        # A simulated hand that held still would show a spring that never pulls.
+        spec = f"{spec.strip()}{',' if ':' in spec else ':'}hand=circle"
     device = create_device(spec)
     stop = {"now": False}
 
@@ -52,9 +84,11 @@ def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
             say("homed")
         k = SPRING_SHARE * info.limits.max_stiffness_N_mm
         b = SPRING_SHARE * info.limits.max_damping_N_s_mm
+        who = ("the simulated hand moves the grip: watch the force follow it" if simulated
+               else "move the grip to feel it")
         say(f"rendering a gentle spring to the workspace centre ({k:.3g} N/mm, at most "
             f"{FORCE_SHARE * info.limits.max_force_N:.3g} N, fading in over {RAMP_S:g} s) for "
-            f"{seconds:g} s: move the grip to feel it (Ctrl-C stops)")
+            f"{seconds:g} s: {who} (Ctrl-C stops)")
         device.cycle(np.zeros(3))  # the first cycle loads compiled kernels: not timed
         period = 1.0 / info.servo_rate_hz
         cap_N = FORCE_SHARE * info.limits.max_force_N
@@ -111,6 +145,8 @@ def run_selftest(spec: str, seconds: float = 5.0, home: bool = True,
             "peak_force_N": peak,
             "buttons_seen": buttons_seen,
         })
+        report["warnings"] = servo_warnings(report["servo_rate_hz"], info.servo_rate_hz,
+                                            report["period_p99_us"], report["period_max_us"])
         return report
     finally:
         signal.signal(signal.SIGINT, previous)

@@ -125,7 +125,20 @@ def groove(depth_mm: float = 3.0, length_mm: float = 16.0, feed_mm_s: float = 5.
     return at
 
 
-HANDS = {"hold": hold, "groove": groove}
+def circle(radius_mm: float = 5.0, period_s: float = 2.0) -> HandScript:
+    """A hand that moves the grip round a horizontal circle about the workspace centre, once
+    every ``period_s``: ``device test`` on the simulated device shows the spring following
+    it."""
+    w = 2.0 * math.pi / period_s
+
+    def at(t: float):
+        c, s = math.cos(w * t), math.sin(w * t)
+        return (radius_mm * c, radius_mm * s, 0.0), (-radius_mm * w * s, radius_mm * w * c, 0.0)
+
+    return at
+
+
+HANDS = {"hold": hold, "groove": groove, "circle": circle}
 
 
 class SimDevice(HapticDevice):
