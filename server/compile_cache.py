@@ -217,7 +217,10 @@ def filling(wait: bool = True, directory: Path | None = None) -> Iterator[bool]:
 def wait_for_filler(timeout_s: float, directory: Path | None = None) -> bool:
     """Wait until no ``burrforce compile`` fills the cache (at most ``timeout_s``): True if
     none does (any more), False on timeout. What it compiled then loads instead of being
-    compiled a second time by the caller."""
+    compiled a second time by the caller. A complete cache is not waited for (nor is its
+    lock file touched: an image's cache stays as it was built)."""
+    if is_complete(directory):
+        return True
     deadline = time.monotonic() + timeout_s
     while True:
         with filling(wait=False, directory=directory) as held:

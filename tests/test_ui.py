@@ -162,6 +162,8 @@ def test_the_page_asks_for_the_token_and_refuses_a_wrong_one(stack, offline):
     page.locator("#login").wait_for(state="visible", timeout=RENDER_TIMEOUT_MS)
     assert page.locator("#main").is_hidden()
     assert "token" in page.locator("#login-reason").inner_text()
+    # Where the token is kept, as the server's 401 says it.
+    assert str(stack.config.data_dir / "token") in page.locator("#login-reason").inner_text()
     page.fill("#token", "not-the-token-0123456789")
     page.click("#login-form button[type=submit]")
     page.wait_for_function("() => document.getElementById('login-reason').textContent"
