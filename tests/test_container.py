@@ -200,6 +200,19 @@ def test_image_is_lean_non_root_and_ships_its_kernels(podman, image):
     assert size_mb < 800, f"the image grew to {size_mb:.0f} MB"
 
 
+def _assert_cache_unchanged(podman: Podman, box, name: str) -> None:
+    """Nothing compiled nor saved at run time: no file under the kernel cache added, deleted
+    or changed. A directory may show as changed: numba probes each cache directory it loads
+    from for writability (an O_TMPFILE there, never linked), which copies the directory up
+    into the container's layer without changing what it holds."""
+    changed = podman("diff", name).stdout
+    entries = [line.split(" ", 1) for line in changed.splitlines()
+               if "/var/cache/burrforce" in line]
+    for kind, path in entries:
+        assert kind == "C", changed
+        assert box.exec("sh", "-c", f"test -d '{path}' && echo dir").strip() == "dir", changed
+
+
 def test_any_user_id_in_group_0_loads_the_kernels(podman, image):
     """OpenShift runs images as an arbitrary user id in group 0: the kernels still load (a
     cache numba cannot write to is not used at all, and the server would compile for half a
@@ -213,17 +226,7 @@ def test_any_user_id_in_group_0_loads_the_kernels(podman, image):
     try:
         box.wait_http(f"http://127.0.0.1:{http_port}/v1/health", timeout_s=120)
         assert box.exec("id", "-u").strip() == "123456"
-        changed = podman("diff", name).stdout
-        # Nothing compiled nor saved: no file under the cache added, deleted or changed. A
-        # directory may show as changed: numba probes each cache directory it loads from
-        # for writability (an O_TMPFILE there, never linked), which copies the directory up
-        # into the container's layer without changing what it holds.
-        entries = [line.split(" ", 1) for line in changed.splitlines()
-                   if "/var/cache/burrforce" in line]
-        for kind, path in entries:
-            assert kind == "C", changed
-            assert box.exec("sh", "-c", f"test -d '{path}' && echo dir").strip() == "dir", \
-                changed
+        _assert_cache_unchanged(podman, box, name)
     finally:
         box.remove()
 
@@ -262,17 +265,7 @@ def test_readme_quick_start_in_a_container(podman, image, tmp_path):
         for script in ("three/three.module.js", "three/three.core.js", "uplot/uPlot.iife.min.js"):
             assert httpx.get(f"{http}/ui/vendor/{script}", timeout=10.0).status_code == 200
         # The kernels came from the image: nothing was compiled into the cache at start.
-        changed = podman("diff", name).stdout
-        # Nothing compiled nor saved: no file under the cache added, deleted or changed. A
-        # directory may show as changed: numba probes each cache directory it loads from
-        # for writability (an O_TMPFILE there, never linked), which copies the directory up
-        # into the container's layer without changing what it holds.
-        entries = [line.split(" ", 1) for line in changed.splitlines()
-                   if "/var/cache/burrforce" in line]
-        for kind, path in entries:
-            assert kind == "C", changed
-            assert box.exec("sh", "-c", f"test -d '{path}' && echo dir").strip() == "dir", \
-                changed
+        _assert_cache_unchanged(podman, box, name)
         # The image's own HEALTHCHECK command (podman runs it by hand without systemd).
         assert podman("healthcheck", "run", name, check=False).returncode == 0
         assert box.stop() == 0  # SIGTERM: journaled and stopped in the grace period
