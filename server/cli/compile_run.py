@@ -50,13 +50,13 @@ def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
     """Run the jobs ``names`` (and nothing else: a job named in another's ``after`` but not
     in ``names`` is taken as done) in ``processes`` processes; their results in the order
     they finished. ``say`` gets one line per job when there is no bar; ``bar`` None: a bar
-    if standard output is a terminal. ``nice``: added to the processes' niceness.
+    if standard output is a terminal with a width. ``nice``: added to the processes' niceness.
 
     Raises what a job raised (the others are stopped first)."""
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise ValueError(f"unknown compile jobs: {', '.join(unknown)}")
-    bar = sys.stdout.isatty() if bar is None else bar
+    bar = _on_a_terminal() if bar is None else bar
     context = multiprocessing.get_context("spawn")
     events = context.SimpleQueue()
     pending = [BY_NAME[n] for n in names]
@@ -94,6 +94,15 @@ def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
             progress.drain(events)
             progress.close()
     return results
+
+
+def _on_a_terminal() -> bool:
+    """Standard output is a terminal with a width (a pseudo-terminal without one, as
+    ``script`` or some CI runners make, would draw the bar as nothing: lines there)."""
+    try:
+        return sys.stdout.isatty() and os.get_terminal_size(sys.stdout.fileno()).columns > 0
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 class _Progress:
