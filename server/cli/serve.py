@@ -37,6 +37,7 @@ from ..argtypes import float_in, int_at_least, int_in
 from ..haptics.profiles import PROFILES
 from .client_demo import EXIT_GAVE_WAY
 from .device import add_loop_options, loop_config
+from .first_start import compile_first_start, load_bone_kernels, start_filler, stop_filler
 from .invocation import burrforce_command
 
 STATUS_INTERVAL_S = 2.0
@@ -169,67 +170,6 @@ def resolve_token(config: ServeConfig) -> tuple[str, bool]:
     return token, True
 
 
-def _load_bone_kernels() -> None:
-    """Build a coarse phantom, which loads the phantom, brick-summary and shared-bone kernels
-    the default session's load runs (best effort: the load itself loads what this missed)."""
-    try:
-        from ..bone import phantom
-
-        phantom("temporal", 1.0)
-    except Exception:  # only a head start: the real load reports its own errors
-        pass
-
-
-def _compile_first_start(say) -> None:
-    """Compile what a hot loop needs to serve a round burr (``compile_jobs.FIRST_START``),
-    in parallel processes, with a progress bar; the rest follows once serving
-    (:func:`_start_filler`). Waits instead for a ``burrforce compile`` already filling the
-    cache (another server's, behind its own first start)."""
-    from .compile_jobs import FIRST_START
-    from .compile_run import default_processes, run_jobs
-
-    say("first start on this machine: compiling the kernels a session needs (once: they "
-        "are cached; the rest compiles in the background once serving)")
-    with compile_cache.filling():
-        run_jobs(FIRST_START, default_processes(), say)
-
-
-def _start_filler(say, data_dir: Path) -> subprocess.Popen | None:
-    """``burrforce compile --background`` into the same cache: what the first start left out
-    (the other burrs' tick, meshes, reports, devices) compiled at a lower priority, one
-    process, while the server runs; its output goes to ``DATA_DIR/compile.log``."""
-    try:
-        data_dir.mkdir(parents=True, exist_ok=True)
-        with open(data_dir / "compile.log", "ab") as log:
-            process = subprocess.Popen(
-                [sys.executable, "-m", "burrforce.server.cli", "compile", "--background"],
-                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                start_new_session=True)  # its pool's processes stop with it
-    except OSError as e:
-        say(f"  (the other kernels were not compiled in the background: {e}; "
-            "`burrforce compile` does it)")
-        return None
-    say("  compiling the other kernels in the background (other burrs, meshes, devices): "
-        "a tool change waits for them")
-    return process
-
-
-def _stop_filler(process: subprocess.Popen | None) -> None:
-    """Stop the background compile with the server (the cache keeps what it finished; the
-    next start compiles the rest behind it again)."""
-    if process is None or process.poll() is not None:
-        return
-    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-        try:
-            os.killpg(process.pid, sig)
-            process.wait(timeout=wait_s)
-            return
-        except ProcessLookupError:
-            return
-        except subprocess.TimeoutExpired:
-            continue
-
-
 def _say_realtime(say, plane) -> None:
     """Whether ``--realtime`` took: each loop thread switches before it reports ready (a
     worker restarted later is reported by ``/v1/health``)."""
@@ -282,10 +222,10 @@ def main(args: argparse.Namespace) -> int:
     # While the kernels compile (first start) or the hot loops warm up (other processes), this
     # process loads the kernels its own bone build needs: a process's first cached kernel
     # costs ~1 s of numba set-up, which would otherwise follow instead of overlapping.
-    threading.Thread(target=_load_bone_kernels, name="burrforce-kernels", daemon=True).start()
+    threading.Thread(target=load_bone_kernels, name="burrforce-kernels", daemon=True).start()
     first_start = not compile_cache.is_complete()
     if first_start:
-        _compile_first_start(say)
+        compile_first_start(say)
     say(f"loading {bone}...")
     from ..api.journal import discard, discard_session
 
@@ -354,7 +294,7 @@ def main(args: argparse.Namespace) -> int:
             _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
                     context["path"], args.haptic_device, _pool_line(plane, session))
             if first_start:
-                context["filler"] = _start_filler(say, Path(config.data_dir))
+                context["filler"] = start_filler(say, Path(config.data_dir))
             def report() -> None:
                 _report(stack.stats, session.id, done, say, plane.devices)
 
@@ -378,7 +318,7 @@ def main(args: argparse.Namespace) -> int:
         conn, conn_path = context.get("conn"), context.get("path")
         filler = context.get("filler")
     finally:
-        _stop_filler(filler)
+        stop_filler(filler)
         say("stopping: sessions journaled (the next start resumes them; --fresh forgets "
             "them), hot loop stopped...")
         stack.stop()

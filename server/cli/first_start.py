@@ -1,0 +1,80 @@
+"""A first ``serve`` on a machine: the kernels a session needs compiled before it is ready
+(``compile_jobs.FIRST_START``, in parallel processes with a progress bar), the rest behind
+the running server (``burrforce compile --background``)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from .. import compile_cache
+
+
+def compile_first_start(say) -> None:
+    """Compile what a hot loop needs to serve a round burr (``compile_jobs.FIRST_START``),
+    in parallel processes, with a progress bar; the rest follows once serving
+    (:func:`start_filler`). Waits instead for a ``burrforce compile`` already filling the
+    cache (another server's, behind its own first start)."""
+    from .compile_jobs import FIRST_START
+    from .compile_run import default_processes, run_jobs
+
+    say("first start on this machine: compiling the kernels a session needs (once: they "
+        "are cached; the rest compiles in the background once serving)")
+    with compile_cache.filling(wait=False) as free:
+        if free:
+            run_jobs(FIRST_START, default_processes(), say)
+            return
+    say(f"  waiting for another `burrforce compile` filling the same cache "
+        f"({compile_cache.cache_dir()})...")
+    with compile_cache.filling():
+        run_jobs(FIRST_START, default_processes(), say)
+
+
+def start_filler(say, data_dir: Path) -> subprocess.Popen | None:
+    """``burrforce compile --background`` into the same cache: what the first start left out
+    (the other burrs' tick, meshes, reports, devices) compiled at a lower priority, one
+    process, while the server runs; its output goes to ``DATA_DIR/compile.log``."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        with open(data_dir / "compile.log", "ab") as log:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "burrforce.server.cli", "compile", "--background"],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True)  # its pool's processes stop with it
+    except OSError as e:
+        say(f"  (the other kernels were not compiled in the background: {e}; "
+            "`burrforce compile` does it)")
+        return None
+    say("  compiling the other kernels in the background (other burrs, meshes, devices): "
+        "a tool change waits for them")
+    return process
+
+
+def stop_filler(process: subprocess.Popen | None) -> None:
+    """Stop the background compile with the server (the cache keeps what it finished; the
+    next start compiles the rest behind it again)."""
+    if process is None or process.poll() is not None:
+        return
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(process.pid, sig)
+            process.wait(timeout=wait_s)
+            return
+        except ProcessLookupError:
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def load_bone_kernels() -> None:
+    """Build a coarse phantom, which loads the phantom, brick-summary and shared-bone kernels
+    the default session's load runs (best effort: the load itself loads what this missed)."""
+    try:
+        from ..bone import phantom
+
+        phantom("temporal", 1.0)
+    except Exception:  # only a head start: the real load reports its own errors
+        pass
