@@ -60,7 +60,8 @@ class HotLoopProcess:
         self._exit_code: int | None = None
         #: Why the process was killed as wedged (None: it was not).
         self.wedged: str | None = None
-        self._lock = threading.Lock()
+        #: Held by a command's round trip; reentrant: a call that times out kills the loop.
+        self._lock = threading.RLock()
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> tuple[str, int]:
         """Start the process; returns (host, port) once the port is open.
@@ -155,8 +156,8 @@ class HotLoopProcess:
                 loop (``hotloop.errors``).
         """
         with self._lock:
-            # Once: the supervisor may kill the loop (and close the pipe) meanwhile; a closed
-            # pipe then raises OSError here, which means the same as EOF.
+            # The supervisor may kill the loop meanwhile: the read then ends in EOF, and the
+            # pipe is closed only after this block (``kill``).
             conn = self._conn
             if conn is None:
                 raise CommandError("unavailable", "the hot loop is not running")
@@ -234,12 +235,16 @@ class HotLoopProcess:
             proc.wait()
         if proc is not None:
             self._exit_code = proc.returncode
-        for pipe in (self._conn, self._beat):
-            if pipe is not None:
-                pipe.close()
-        self._proc = None
-        self._conn = None
-        self._beat = None
+        # Only once no command is reading the pipe (its read ends now: the process is gone).
+        # Closed under a reader, its descriptor could be given to the next loop's pipe, and
+        # the reader would take that loop's bytes as its own answer.
+        with self._lock:
+            for pipe in (self._conn, self._beat):
+                if pipe is not None:
+                    pipe.close()
+            self._proc = None
+            self._conn = None
+            self._beat = None
 
     def __enter__(self) -> HotLoopProcess:
         if self._proc is None:
