@@ -22,7 +22,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
 
 from .design import Sensitivities
 from .table import COMPONENTS, CaseRow, group_rows
@@ -185,6 +184,10 @@ def estimate(y: np.ndarray, a: np.ndarray, b: np.ndarray, options: FitOptions) -
     else:
         cov = rss / dof * bread
         t_dof = dof
+    # Here, not at the top: scipy.stats takes ~0.6 s to import, and every `serve` imports
+    # this module (the calibration routes) but few fit anything.
+    from scipy import stats
+
     t = float(stats.t.ppf(0.5 + options.confidence / 2.0, t_dof))
     us = float(theta[0])
     if us <= 0.0:
