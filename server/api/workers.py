@@ -30,8 +30,10 @@ STREAM_JUMP = 1 << 16
 #: Placement compares workers' measured tick work in steps of this, µs of tick per s (1 % of a
 #: core): below it, load is noise (an idle session's stray tick) and session count decides.
 WORK_STEP_US_PER_S = 10_000.0
-#: Commands that map and warm a bone (a first start may compile kernels): the long timeout.
-SLOW_COMMANDS = frozenset({"add_session", "replace_session"})
+#: Commands that map and warm a bone, or warm another burr's tick (a first start may compile
+#: kernels, or wait for the background compile): the long timeout. The loop's heartbeat,
+#: not the command's answer, tells a wedged loop meanwhile.
+SLOW_COMMANDS = frozenset({"add_session", "replace_session", "set_engine"})
 
 
 class WorkerPool:

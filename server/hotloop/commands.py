@@ -38,8 +38,9 @@ from .spec import SessionSpec, bone_info, build_session
 #: The longest the packet thread waits for the GIL while a session is built, s (about).
 GIL_TURN_S = 100e-6
 #: The longest a tool change waits for a ``burrforce compile`` filling the cache, s: it
-#: compiles the tick itself after that.
-FILLER_WAIT_S = 600.0
+#: compiles the tick itself after that, and answers well within the control plane's wait
+#: for a slow command (``handle.START_TIMEOUT_S``).
+FILLER_WAIT_S = 300.0
 
 
 @dataclass(frozen=True)
