@@ -15,7 +15,7 @@ import hashlib
 import os
 import re
 import time
-from collections.abc import Iterator, MutableMapping
+from collections.abc import Callable, Iterator, MutableMapping
 from contextlib import contextmanager
 from functools import cache
 from importlib import metadata
@@ -191,11 +191,13 @@ def mark_complete(directory: Path | None = None) -> None:
 
 
 @contextmanager
-def filling(wait: bool = True, directory: Path | None = None) -> Iterator[bool]:
+def filling(wait: bool = True, directory: Path | None = None,
+            on_wait: Callable[[], None] | None = None) -> Iterator[bool]:
     """Hold the cache's fill lock (``FILL_LOCK``) for the block: yields True once held,
-    False if ``wait`` is False and another process holds it. One compiler at a time: on two
-    cores a second would only halve the first one's speed. A cache that cannot be written
-    (nor locked) yields True: nothing can be filling it."""
+    False if ``wait`` is False and another process holds it (``on_wait`` is called before
+    waiting for it, to say so). One compiler at a time: on two cores a second would only
+    halve the first one's speed. A cache that cannot be written (nor locked) yields True:
+    nothing can be filling it."""
     directory = directory if directory is not None else cache_dir()
     try:
         directory.mkdir(parents=True, exist_ok=True)
@@ -205,10 +207,14 @@ def filling(wait: bool = True, directory: Path | None = None) -> Iterator[bool]:
         return
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            yield False
-            return
+            if not wait:
+                yield False
+                return
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(fd, fcntl.LOCK_EX)
         yield True
     finally:
         os.close(fd)  # releases the lock

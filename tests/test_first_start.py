@@ -49,9 +49,25 @@ def test_one_compiler_fills_a_cache_at_a_time(tmp_path):
         t0 = time.monotonic()
         assert compile_cache.wait_for_filler(0.3, tmp_path) is False
         assert time.monotonic() - t0 >= 0.3
+        # A compiler that waits says so first, then gets the lock once it is let go.
+        import threading
+
+        said, got = [], []
+
+        def second() -> None:
+            with compile_cache.filling(directory=tmp_path, on_wait=lambda: said.append(1)) \
+                    as held:
+                got.append(held)
+
+        waiter = threading.Thread(target=second)
+        waiter.start()
+        time.sleep(0.3)
+        assert said == [1] and got == []
         holder.stdin.write("\n")
         holder.stdin.flush()
         holder.wait(timeout=30)
+        waiter.join(timeout=30)
+        assert got == [True]
         assert compile_cache.wait_for_filler(5.0, tmp_path) is True
         with compile_cache.filling(wait=False, directory=tmp_path) as held:
             assert held is True

@@ -51,12 +51,11 @@ def main(args: argparse.Namespace) -> int:
     say = (lambda text: None) if quiet else (lambda text: print(text, flush=True))
     cache_dir = compile_cache.cache_dir()
     processes = args.processes or (1 if args.background else default_processes())
-    with compile_cache.filling(wait=False) as held:
-        if not held and args.background:  # another compile fills the cache
+    waiting = f"waiting for another `burrforce compile` filling {cache_dir}..."
+    with compile_cache.filling(wait=not args.background,
+                               on_wait=lambda: say(waiting)) as held:
+        if not held:  # --background: another compile fills the cache
             return 0
-    if not held:
-        say(f"waiting for another `burrforce compile` filling {cache_dir}...")
-    with compile_cache.filling():
         say(f"compiling into {cache_dir or '(numba default)'} for "
             f"{os.environ.get('NUMBA_CPU_NAME') or 'this machine CPU'} in {processes} "
             "process(es) (kernels already there are only loaded)")

@@ -23,13 +23,9 @@ def compile_first_start(say) -> None:
 
     say("first start on this machine: compiling the kernels a session needs (once: they "
         "are cached; the rest compiles in the background once serving)")
-    with compile_cache.filling(wait=False) as free:
-        if free:
-            run_jobs(FIRST_START, default_processes(), say)
-            return
-    say(f"  waiting for another `burrforce compile` filling the same cache "
-        f"({compile_cache.cache_dir()})...")
-    with compile_cache.filling():
+    with compile_cache.filling(on_wait=lambda: say(
+            "  waiting for another `burrforce compile` filling the same cache "
+            f"({compile_cache.cache_dir()})...")):
         run_jobs(FIRST_START, default_processes(), say)
 
 
