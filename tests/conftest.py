@@ -99,6 +99,7 @@ SLOW: tuple[str, ...] = (
     "test_compile_cache.py::test_compile_fills_the_cache_it_is_given",
     "test_compile_cache.py::test_after_compile_processes_only_load_even_two_at_once",
     "test_compile_cache.py::test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache",
+    "test_compile_cache.py::test_a_report_after_compile_loads_every_kernel_and_says_nothing_of_it",
     # serve on an empty cache until its background compile is done, then again; the jobs,
     # their progress and the tool change after a first start stay in the fast tier.
     "test_first_start.py::test_a_first_serve_compiles_with_progress_then_the_rest_behind_it",

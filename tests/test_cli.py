@@ -189,3 +189,18 @@ def test_bench_accuracy_in_a_checkout_leaves_git_status_clean(tmp_path):
     (fresh,) = tmp_path.glob("burrforce-bench-accuracy-*")
     assert sorted(p.name for p in fresh.iterdir()) == ["accuracy.json", "accuracy.md"]
     assert fresh.name in out.stderr and "| aligned | 0.4 | 512 |" in out.stdout
+
+
+def test_the_parser_leaves_the_slow_scipy_modules_to_the_commands_that_use_them():
+    """Every command builds the whole parser, so what its modules import at the top delays
+    `serve`'s start and `report` alike: scipy.integrate (the reference model) and scipy.stats
+    (the calibration fit) are imported where they are used."""
+    code = ("import sys\n"
+            "from burrforce.server.cli import build_parser\n"
+            "build_parser()\n"
+            "print(sorted(m for m in ('scipy.integrate', 'scipy.stats', 'scipy.optimize')"
+            " if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

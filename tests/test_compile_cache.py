@@ -5,6 +5,7 @@ saved")."""
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 import subprocess
@@ -220,3 +221,52 @@ def test_serve_and_its_hot_loop_load_every_kernel_from_the_compiled_cache(compil
     # The hot loop's wire kernels run only in the child: loaded there, from this cache.
     assert f"{LOADED} from '{cache}" in printed
     assert "wire.decode_pose_into" in printed
+
+
+def _small_recording(folder: Path) -> Path:
+    """A short recording of a session cutting, made in this process."""
+    from burrforce.proto.messages import Pose
+    from burrforce.server.bone import BoneEngine, phantom
+    from burrforce.server.hotloop import Session
+    from burrforce.server.record import start_recording
+
+    bone = phantom("workpiece", 0.5)
+    session = Session(1, BoneEngine(bone.grid, bone.materials))
+    recorder = start_recording(session, folder / "trainee")
+    for seq in range(1, 40):
+        pose = Pose(1, seq, seq * 1000, (5.0 + 0.02 * seq, 0.0, -0.5), (0.0, 0.0, 0.0, 1.0),
+                    60_000.0, True, None, 0)
+        session.admit(pose.seq)
+        session.respond(pose, seq * 1_000_000)
+    recorder.close()
+    return recorder.path
+
+
+def test_a_report_after_compile_loads_every_kernel_and_says_nothing_of_it(compiled, tmp_path):
+    """`burrforce compile` covers the replay a report runs (its bone is loaded from the
+    recording's snapshot, typed apart from a hot loop's shared one): the report compiles
+    nothing and its output is the report alone."""
+    cache, _ = compiled
+    path = _small_recording(tmp_path)
+    out = subprocess.run([sys.executable, "-m", "burrforce.server.cli", "report", str(path)],
+                         capture_output=True, text=True, timeout=300,
+                         env=_env(NUMBA_CACHE_DIR=str(cache), NUMBA_DEBUG_CACHE="1"))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.count(SAVED) == 0 and out.stdout.count(LOADED) > 0
+    assert "first use" not in out.stdout + out.stderr
+    report = [line for line in out.stdout.splitlines() if not line.startswith("[cache]")]
+    assert report[0].startswith("trainee.burrrec")
+
+
+def test_a_report_on_an_incomplete_cache_says_it_compiles_first_on_standard_error(
+        tmp_path, monkeypatch):
+    from burrforce.server.cli.first_start import compile_before_use
+
+    complete, incomplete = tmp_path / "complete", tmp_path / "incomplete"
+    compile_cache.mark_complete(complete)
+    for cache, said in ((complete, ""), (incomplete, "first use on this machine: compiling "
+                                                      "the kernels a replay needs")):
+        monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+        stream = io.StringIO()
+        compile_before_use((), "a replay", stream)  # no job: only what it says
+        assert stream.getvalue().startswith(said) and bool(stream.getvalue()) == bool(said)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import signal
 import socket
 import time
@@ -261,6 +262,8 @@ def test_stale_shared_bone_directories_of_killed_servers_are_removed(tmp_path):
                                  ("burrforce-live0001", str(os.getpid()), False),
                                  ("burrforce-empty001", None, False),
                                  ("burrforce-files001", None, True),
+                                 # just made by mkdtemp, its owner file not yet written
+                                 ("burrforce-young001", None, False),
                                  ("burrforce-bench-flood-abcdefgh", None, False)):
         d = tmp_path / name
         d.mkdir()
@@ -268,14 +271,34 @@ def test_stale_shared_bone_directories_of_killed_servers_are_removed(tmp_path):
             (d / OWNER_FILE).write_text(owner)
         if content:
             (d / "session-1-1.bone").write_bytes(b"x")
+        if name != "burrforce-young001":
+            os.utime(d, (time.time() - 3600, time.time() - 3600))
         made[name] = d
     keep = tmp_path / "burrforce-mine0001"
     keep.mkdir()
     removed = remove_stale_run_directories(tmp_path, keep)
     assert sorted(d.name for d in removed) == ["burrforce-dead0001", "burrforce-empty001"]
     assert all(made[n].exists() for n in ("burrforce-live0001", "burrforce-files001",
-                                          "burrforce-bench-flood-abcdefgh"))
+                                          "burrforce-bench-flood-abcdefgh",
+                                          "burrforce-young001"))
     assert keep.exists()
+
+
+def test_a_run_directory_is_owned_from_the_moment_it_is_made():
+    """`burrforce compile` and benches make run directories too; a server starting beside
+    them (a test suite, a second server) must not take one being filled for a dead one's."""
+    from burrforce.server.api.housekeeping import OWNER_FILE, remove_stale_run_directories
+    from burrforce.server.bone.shared import run_directory
+
+    made = run_directory()
+    try:
+        assert (made / OWNER_FILE).read_text().strip() == str(os.getpid())
+        os.utime(made, (time.time() - 3600, time.time() - 3600))
+        other = made.parent / "burrforce-notmine1"
+        assert made not in remove_stale_run_directories(made.parent, keep=other)
+        assert made.is_dir()
+    finally:
+        shutil.rmtree(made, ignore_errors=True)
 
 
 def test_a_bone_reset_after_a_restart_never_offers_an_old_stream_again(stack):

@@ -435,11 +435,14 @@ def test_the_force_is_also_given_in_the_server_frame(stack):
     try:
         unity = frames.Transform(frames.frame("unity"))
         session = stack.plane.get(11)
+        # The feed velocity is sent, not left to the packets' timing: the force is
+        # proportional to it, and a loaded machine spaces the packets out.
+        feed = unity.vector_out((5.0, 0.0, 0.0))  # mm/s: 0.005 mm a packet at 1 kHz
         with BurrClient(*stack.udp_address, session.id, session.key_hex) as client:
             for i in range(300):
                 p = unity.point_out((10.0 + 0.005 * i, 0.0, 1.5))  # 0.5 mm deep
                 with contextlib.suppress(TimeoutError, ServerGone):
-                    client.exchange(p, rpm=60000.0, timeout_s=0.5)
+                    client.exchange(p, rpm=60000.0, velocity=feed, timeout_s=0.5)
         s = stack.plane.telemetry.sample(11)
         assert s.reply_current and s.hand_force_magnitude_N > 0.5
         assert s.force_server_N == pytest.approx(list(unity.direction_in(s.force_N)), abs=1e-9)

@@ -13,13 +13,17 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import time
 from pathlib import Path
 
-from ..bone.shared import run_directory
+from ..bone.shared import OWNER_FILE, run_directory
 
-#: The file in a shared-bone directory naming the process that owns it.
-OWNER_FILE = "owner.pid"
 RUN_DIR_NAME = re.compile(r"burrforce-[a-z0-9_]{8}")
+#: An empty run directory without an owner is left alone this long: one being made right now
+#: (between ``mkdtemp`` and its owner file) is not a dead server's.
+OWNERLESS_GRACE_S = 60.0
+
+__all__ = ["OWNER_FILE", "RunDirectory", "journal_dir", "remove_stale_run_directories"]
 
 
 def journal_dir(data_dir: Path) -> Path:
@@ -33,7 +37,6 @@ class RunDirectory:
 
     def __init__(self) -> None:
         self.path = run_directory(0)
-        (self.path / OWNER_FILE).write_text(f"{os.getpid()}\n")
         remove_stale_run_directories(self.path.parent, keep=self.path)
 
     def remove(self) -> None:
@@ -43,7 +46,8 @@ class RunDirectory:
 def remove_stale_run_directories(base: Path, keep: Path) -> list[Path]:
     """Remove the shared-bone directories that servers killed with SIGKILL left in ``base``
     (``/dev/shm``, or the temporary directory): those whose owner process is gone, and
-    empty ones without an owner (older servers). Returns what was removed."""
+    empty ones without an owner (older servers) once ``OWNERLESS_GRACE_S`` old. Returns what
+    was removed."""
     removed = []
     for d in base.glob("burrforce-*"):
         # Only tempfile.mkdtemp's names (run_directory): not a bench's temporary folder.
@@ -54,8 +58,8 @@ def remove_stale_run_directories(base: Path, keep: Path) -> list[Path]:
         except (OSError, ValueError):
             pid = None
             try:
-                if any(d.iterdir()):
-                    continue  # not ours to judge
+                if any(d.iterdir()) or time.time() - d.stat().st_mtime < OWNERLESS_GRACE_S:
+                    continue  # not ours to judge, or being made
             except OSError:
                 continue
         if pid is not None and _alive(pid):

@@ -90,10 +90,16 @@ def _arrays(m: mmap.mmap, shape: tuple[int, int, int]) -> dict[str, np.ndarray]:
     }
 
 
+#: The file in a run directory naming the process that owns it, written as it is made: a
+#: server starting beside it removes only directories whose owner is gone.
+OWNER_FILE = "owner.pid"
+
+
 def run_directory(size_bytes: int = 0) -> Path:
     """A fresh private directory for shared bones: under /dev/shm when it exists and has room
     for ``size_bytes`` (RAM-backed), else the system temporary directory (still shared through
-    the page cache, written back to disk lazily)."""
+    the page cache, written back to disk lazily). It holds ``OWNER_FILE`` with this process's
+    PID from the start."""
     shm = Path("/dev/shm")
     base = None
     if shm.is_dir() and os.access(shm, os.W_OK):
@@ -102,7 +108,9 @@ def run_directory(size_bytes: int = 0) -> Path:
                 base = shm
         except OSError:
             pass
-    return Path(tempfile.mkdtemp(prefix="burrforce-", dir=base))
+    path = Path(tempfile.mkdtemp(prefix="burrforce-", dir=base))
+    (path / OWNER_FILE).write_text(f"{os.getpid()}\n")
+    return path
 
 
 @dataclass(frozen=True)

@@ -150,9 +150,34 @@ def _device_loop() -> None:
     _commands_for_force(grip_m, np.zeros(3))
 
 
+def _recordings() -> None:
+    """A replay and a report of a short recording (``burrforce replay``, ``report``, the
+    REST report): the tick there runs on a bone loaded from the recording's snapshot, whose
+    arrays numba types apart from a hot loop's shared ones; every burr's tick on it."""
+    from ...proto.messages import Pose
+    from ..bone import BoneEngine, phantom
+    from ..hotloop import Session
+    from ..record import start_recording
+    from ..report import report_from_recording
+
+    bone = phantom("workpiece", 0.5)
+    session = Session(1, BoneEngine(bone.grid, bone.materials))
+    with tempfile.TemporaryDirectory(prefix="burrforce-compile-") as folder:
+        recorder = start_recording(session, Path(folder) / "compile")
+        for seq in range(1, 4):  # 0.5 mm into the workpiece's top face (z = 0), cutting
+            pose = Pose(1, seq, seq * 1000, (5.0 + 0.02 * seq, 0.0, -0.5),
+                        (0.0, 0.0, 0.0, 1.0), 60_000.0, True, None, 0)
+            session.admit(pose.seq)
+            session.respond(pose, seq * 1_000_000)
+        recorder.close()
+        report_from_recording(recorder.path)
+        BoneEngine(bone.grid, bone.materials).warm_up(every_burr=True)
+
+
 TICK_ROUND = "tick, round burr"
 PACKET_PATH = "packets and haptics"
 SESSIONS = "sessions"
+RECORDINGS = "recordings and reports"
 
 #: In the order a server needs them.
 JOBS: tuple[Job, ...] = (
@@ -165,6 +190,7 @@ JOBS: tuple[Job, ...] = (
     Job("bone files", _bone_files, 9),
     Job("cutting model", _model, 24),
     Job("device loop", _device_loop, 55),
+    Job(RECORDINGS, _recordings, 156),
 )
 #: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr.
 FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS)

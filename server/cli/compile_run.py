@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
+from typing import TextIO
 
 from .compile_jobs import JOBS, Job
 
@@ -46,24 +47,27 @@ def default_processes() -> int:
 
 
 def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
-             bar: bool | None = None, nice: int = 0) -> list[JobResult]:
+             bar: bool | None = None, nice: int = 0, stream: TextIO | None = None,
+             ) -> list[JobResult]:
     """Run the jobs ``names`` (and nothing else: a job named in another's ``after`` but not
     in ``names`` is taken as done) in ``processes`` processes; their results in the order
     they finished. ``say`` gets one line per job when there is no bar; ``bar`` None: a bar
-    if standard output is a terminal with a width. ``nice``: added to the processes' niceness.
+    if ``stream`` (default: standard output) is a terminal with a width, drawn there.
+    ``nice``: added to the processes' niceness.
 
     Raises what a job raised (the others are stopped first)."""
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         raise ValueError(f"unknown compile jobs: {', '.join(unknown)}")
-    bar = _on_a_terminal() if bar is None else bar
+    stream = sys.stdout if stream is None else stream
+    bar = _on_a_terminal(stream) if bar is None else bar
     context = multiprocessing.get_context("spawn")
     events = context.SimpleQueue()
     pending = [BY_NAME[n] for n in names]
     done: set[str] = {j.name for j in JOBS if j.name not in names}
     running: dict[Future, Job] = {}
     results: list[JobResult] = []
-    progress = _Progress(sum(j.kernels for j in pending), bar, say)
+    progress = _Progress(sum(j.kernels for j in pending), bar, say, stream)
     processes = max(1, min(processes, len(pending)))
     with ProcessPoolExecutor(max_workers=processes, mp_context=context,
                              initializer=_init_process, initargs=(events, nice)) as pool:
@@ -96,11 +100,11 @@ def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
     return results
 
 
-def _on_a_terminal() -> bool:
-    """Standard output is a terminal with a width (a pseudo-terminal without one, as
-    ``script`` or some CI runners make, would draw the bar as nothing: lines there)."""
+def _on_a_terminal(stream: TextIO) -> bool:
+    """``stream`` is a terminal with a width (a pseudo-terminal without one, as ``script``
+    or some CI runners make, would draw the bar as nothing: lines there)."""
     try:
-        return sys.stdout.isatty() and os.get_terminal_size(sys.stdout.fileno()).columns > 0
+        return stream.isatty() and os.get_terminal_size(stream.fileno()).columns > 0
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -109,8 +113,10 @@ class _Progress:
     """The bar (tqdm, on a terminal) or the plain lines. Nothing at all until a kernel is
     compiled: loading from the cache is not worth a word."""
 
-    def __init__(self, total: int, bar: bool, say: Callable[[str], None]) -> None:
+    def __init__(self, total: int, bar: bool, say: Callable[[str], None],
+                 stream: TextIO) -> None:
         self.total = max(total, 1)
+        self.stream = stream
         self.bar = bar
         self.say = say
         self.running: list[str] = []
@@ -159,7 +165,7 @@ class _Progress:
             return
         from tqdm import tqdm
 
-        self._tqdm = tqdm(total=self.total, unit=" kernels", file=sys.stdout, leave=True,
+        self._tqdm = tqdm(total=self.total, unit=" kernels", file=self.stream, leave=True,
                           dynamic_ncols=True, initial=0,
                           bar_format="{desc}: {bar} {n_fmt}/~{total_fmt} kernels "
                                      "[{elapsed}<{remaining}]")

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import TextIO
 
 from .. import compile_cache
 
@@ -27,6 +28,27 @@ def compile_first_start(say) -> None:
             "  waiting for another `burrforce compile` filling the same cache "
             f"({compile_cache.cache_dir()})...")):
         run_jobs(FIRST_START, default_processes(), say)
+
+
+def compile_before_use(jobs: tuple[str, ...], what: str, stream: TextIO) -> None:
+    """For a command other than ``serve`` (``report``, ``replay``) on a cache that is not
+    complete: compile ``jobs`` first, saying so and drawing the bar on ``stream`` (standard
+    error: the command's own output stays clean), instead of compiling in silence on first
+    use. Waits instead for a ``burrforce compile`` filling the cache (a server's, behind its
+    first start). Nothing at all on a complete cache."""
+    if compile_cache.is_complete():
+        return
+    from .compile_run import default_processes, run_jobs
+
+    def say(text: str) -> None:
+        print(text, file=stream, flush=True)
+
+    say(f"first use on this machine: compiling the kernels {what} needs (once: they are "
+        "cached; `burrforce compile` does them all ahead)")
+    with compile_cache.filling(on_wait=lambda: say(
+            "  waiting for another `burrforce compile` filling the same cache "
+            f"({compile_cache.cache_dir()})...")):
+        run_jobs(jobs, default_processes(), say, stream=stream)
 
 
 def start_filler(say, data_dir: Path) -> subprocess.Popen | None:

@@ -52,10 +52,13 @@ def _check_writable(path: Path | None, what: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..bone.loaders import save_bone
     from ..record import read_recording, replay
+    from .compile_jobs import RECORDINGS
+    from .first_start import compile_before_use
 
     _check_writable(args.csv, "CSV")
     _check_writable(args.bone_out, "bone")
     recording = read_recording(args.recording)
+    compile_before_use((RECORDINGS,), "a replay", sys.stderr)
     for problem in recording.problems:
         print(f"warning: {problem}", file=sys.stderr)
     progress = _Progress(len(recording.rows))

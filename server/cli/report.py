@@ -46,9 +46,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..record import read_recording
     from ..report import render_html, report_from_recording
+    from .compile_jobs import RECORDINGS
+    from .first_start import compile_before_use
 
     _check_writable(args.html, "HTML report")
     recording = read_recording(args.recording)
+    compile_before_use((RECORDINGS,), "a replay", sys.stderr)
     progress = _Progress(len(recording.rows))
     try:
         report = report_from_recording(recording, args.threshold_n, progress=progress)

@@ -20,7 +20,6 @@ from itertools import pairwise
 from typing import NamedTuple
 
 import numpy as np
-from scipy.integrate import quad_vec
 
 from .cases import CuttingCase
 from .params import CuttingParams
@@ -169,6 +168,10 @@ def reference_flat(
             total[8] += float(area.sum())
             total[9] += float(area @ speed)
         return total
+
+    # Here, not at the top: scipy.integrate takes ~0.7 s to import, and every `burrforce`
+    # command builds its parser through the bench that imports this module.
+    from scipy.integrate import quad_vec
 
     total, _err = quad_vec(at_phi, 0.0, 2.0 * math.pi, epsrel=epsrel, epsabs=1e-13, limit=20000)
     return result_from_totals(total)

@@ -19,7 +19,6 @@ import math
 from itertools import pairwise
 
 import numpy as np
-from scipy.integrate import quad_vec
 
 from .params import CuttingParams
 from .reference import ReferenceResult, flat_frame, result_from_totals
@@ -133,6 +132,8 @@ def reference_shape_flat(
             total += ((np.sin(_DEGREES * hi) - np.sin(_DEGREES * lo)) / _DEGREES) @ ak
             total -= ((np.cos(_DEGREES * hi) - np.cos(_DEGREES * lo)) / _DEGREES) @ bk
         return total
+
+    from scipy.integrate import quad_vec  # here: see reference.py
 
     total = np.zeros(_N_OUT)
     for seg in burr.shape.profile():
