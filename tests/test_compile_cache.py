@@ -258,15 +258,24 @@ def test_a_report_after_compile_loads_every_kernel_and_says_nothing_of_it(compil
     assert report[0].startswith("trainee.burrrec")
 
 
-def test_a_report_on_an_incomplete_cache_says_it_compiles_first_on_standard_error(
+def test_before_a_replay_an_incomplete_cache_is_filled_saying_so_on_the_stream_given(
         tmp_path, monkeypatch):
+    """`report` and `replay` on an incomplete cache compile first, their lines on standard
+    error (the stream given: stdout stays the report); on a complete cache nothing runs.
+    (The packet job stands in for the recordings job, which takes minutes.)"""
+    from burrforce.server.cli.compile_jobs import PACKET_PATH
     from burrforce.server.cli.first_start import compile_before_use
 
     complete, incomplete = tmp_path / "complete", tmp_path / "incomplete"
     compile_cache.mark_complete(complete)
-    for cache, said in ((complete, ""), (incomplete, "first use on this machine: compiling "
-                                                      "the kernels a replay needs")):
-        monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    said = {}
+    for cache in (complete, incomplete):
+        monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the pool's processes inherit it
         stream = io.StringIO()
-        compile_before_use((), "a replay", stream)  # no job: only what it says
-        assert stream.getvalue().startswith(said) and bool(stream.getvalue()) == bool(said)
+        compile_before_use((PACKET_PATH,), "a replay", stream)
+        said[cache] = stream.getvalue().splitlines()
+    assert said[complete] == [] and not list(complete.rglob("*.nbi"))
+    assert said[incomplete][0].startswith(
+        "first use on this machine: compiling the kernels a replay needs")
+    assert said[incomplete][1].startswith(f"  compiled {PACKET_PATH}: ")
+    assert list(incomplete.rglob("*.nbi"))

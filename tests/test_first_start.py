@@ -92,14 +92,15 @@ def empty_cache(tmp_path, monkeypatch):
 
 def test_compiling_shows_each_job_and_loading_shows_nothing(empty_cache, capsys):
     lines: list[str] = []
-    results = run_jobs([PACKET_PATH], 1, lines.append, bar=False)
+    results = run_jobs([PACKET_PATH], 1, lines.append, bar=False, header="first use")
     assert [r.name for r in results] == [PACKET_PATH]
     assert results[0].compiled > 10
-    assert len(lines) == 1 and lines[0].startswith(
+    assert len(lines) == 2 and lines[0] == "first use" and lines[1].startswith(
         f"  compiled {PACKET_PATH}: {results[0].compiled} kernels in ")
-    # The same job again: every kernel loads from the cache, and nothing is said.
+    # The same job again: every kernel loads from the cache, and nothing is said, not even
+    # the header.
     lines.clear()
-    again = run_jobs([PACKET_PATH], 1, lines.append, bar=False)
+    again = run_jobs([PACKET_PATH], 1, lines.append, bar=False, header="first use")
     assert again[0].compiled == 0 and lines == []
     assert capsys.readouterr().out == ""
 

@@ -48,12 +48,13 @@ def default_processes() -> int:
 
 def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
              bar: bool | None = None, nice: int = 0, stream: TextIO | None = None,
-             ) -> list[JobResult]:
+             header: str = "") -> list[JobResult]:
     """Run the jobs ``names`` (and nothing else: a job named in another's ``after`` but not
     in ``names`` is taken as done) in ``processes`` processes; their results in the order
     they finished. ``say`` gets one line per job when there is no bar; ``bar`` None: a bar
     if ``stream`` (default: standard output) is a terminal with a width, drawn there.
-    ``nice``: added to the processes' niceness.
+    ``nice``: added to the processes' niceness. ``header``: said before the first kernel
+    compiles (never, when every kernel loads from the cache).
 
     Raises what a job raised (the others are stopped first)."""
     unknown = [n for n in names if n not in BY_NAME]
@@ -67,7 +68,7 @@ def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
     done: set[str] = {j.name for j in JOBS if j.name not in names}
     running: dict[Future, Job] = {}
     results: list[JobResult] = []
-    progress = _Progress(sum(j.kernels for j in pending), bar, say, stream)
+    progress = _Progress(sum(j.kernels for j in pending), bar, say, stream, header)
     processes = max(1, min(processes, len(pending)))
     with ProcessPoolExecutor(max_workers=processes, mp_context=context,
                              initializer=_init_process, initargs=(events, nice)) as pool:
@@ -114,9 +115,10 @@ class _Progress:
     compiled: loading from the cache is not worth a word."""
 
     def __init__(self, total: int, bar: bool, say: Callable[[str], None],
-                 stream: TextIO) -> None:
+                 stream: TextIO, header: str = "") -> None:
         self.total = max(total, 1)
         self.stream = stream
+        self.header = header
         self.bar = bar
         self.say = say
         self.running: list[str] = []
@@ -141,6 +143,8 @@ class _Progress:
             n += 1
             self.last_kernel = kernel
         if n:
+            if not self.compiled and self.header:
+                self.say(self.header)
             self.compiled += n
             self._show()
             if self._tqdm is not None:

@@ -20,14 +20,10 @@ def compile_first_start(say) -> None:
     (:func:`start_filler`). Waits instead for a ``burrforce compile`` already filling the
     cache (another server's, behind its own first start)."""
     from .compile_jobs import FIRST_START
-    from .compile_run import default_processes, run_jobs
 
-    say("first start on this machine: compiling the kernels a session needs (once: they "
-        "are cached; the rest compiles in the background once serving)")
-    with compile_cache.filling(on_wait=lambda: say(
-            "  waiting for another `burrforce compile` filling the same cache "
-            f"({compile_cache.cache_dir()})...")):
-        run_jobs(FIRST_START, default_processes(), say)
+    _compile(FIRST_START, say, "first start on this machine: compiling the kernels a session "
+                               "needs (once: they are cached; the rest compiles in the "
+                               "background once serving)")
 
 
 def compile_before_use(jobs: tuple[str, ...], what: str, stream: TextIO) -> None:
@@ -38,17 +34,24 @@ def compile_before_use(jobs: tuple[str, ...], what: str, stream: TextIO) -> None
     first start). Nothing at all on a complete cache."""
     if compile_cache.is_complete():
         return
-    from .compile_run import default_processes, run_jobs
 
     def say(text: str) -> None:
         print(text, file=stream, flush=True)
 
-    say(f"first use on this machine: compiling the kernels {what} needs (once: they are "
-        "cached; `burrforce compile` does them all ahead)")
+    _compile(jobs, say, f"first use on this machine: compiling the kernels {what} needs "
+                        "(once: they are cached; `burrforce compile` does them all ahead)",
+             stream)
+
+
+def _compile(jobs: tuple[str, ...], say, header: str, stream: TextIO | None = None) -> None:
+    """Run ``jobs`` with the bar, ``header`` said when the first kernel compiles (nothing
+    when all load), after any ``burrforce compile`` filling the same cache."""
+    from .compile_run import default_processes, run_jobs
+
     with compile_cache.filling(on_wait=lambda: say(
             "  waiting for another `burrforce compile` filling the same cache "
             f"({compile_cache.cache_dir()})...")):
-        run_jobs(jobs, default_processes(), say, stream=stream)
+        run_jobs(jobs, default_processes(), say, stream=stream, header=header)
 
 
 def start_filler(say, data_dir: Path) -> subprocess.Popen | None:
