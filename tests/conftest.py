@@ -117,6 +117,15 @@ SLOW: tuple[str, ...] = (
     # The session bench's variants; its rows and counts stay in the fast tier.
     "test_bench_sessions.py::test_reading_each_reply_as_it_comes_from_loops_that_do_not_wake_ahead",
     "test_bench_sessions.py::test_realtime_reaches_serve_and_the_generator",
+    # serve killed with SIGKILL and started again on its journal; the hot-loop kills, the
+    # deleted session and the journal's own tests stay in the fast tier.
+    "test_crash_recovery.py::test_serve_killed_with_sigkill_resumes_its_sessions_and_carving",
+    # A wheel built and listed (CI also builds one offline); the layout tests stay.
+    "test_packaging.py::test_non_editable_wheel_has_the_namespace_layout",
+    # A recording over REST replayed through the CLI; test_record's replays stay.
+    "test_api.py::test_recording_replays_exactly",
+    # `bench device` measuring the simulated device; its refusals and `device test` stay.
+    "test_cli_device.py::test_bench_device_json_rows",
 )
 
 

@@ -262,8 +262,7 @@ def test_before_a_replay_an_incomplete_cache_is_filled_saying_so_on_the_stream_g
         tmp_path, monkeypatch):
     """`report` and `replay` on an incomplete cache compile first, their lines on standard
     error (the stream given: stdout stays the report); on a complete cache nothing runs.
-    (The packet job stands in for the recordings job, which takes minutes.)"""
-    from burrforce.server.cli.compile_jobs import PACKET_PATH
+    (A short job stands in for the recordings job, which takes minutes.)"""
     from burrforce.server.cli.first_start import compile_before_use
 
     complete, incomplete = tmp_path / "complete", tmp_path / "incomplete"
@@ -272,10 +271,10 @@ def test_before_a_replay_an_incomplete_cache_is_filled_saying_so_on_the_stream_g
     for cache in (complete, incomplete):
         monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the pool's processes inherit it
         stream = io.StringIO()
-        compile_before_use((PACKET_PATH,), "a replay", stream)
+        compile_before_use(("bone files",), "a replay", stream)
         said[cache] = stream.getvalue().splitlines()
     assert said[complete] == [] and not list(complete.rglob("*.nbi"))
     assert said[incomplete][0].startswith(
         "first use on this machine: compiling the kernels a replay needs")
-    assert said[incomplete][1].startswith(f"  compiled {PACKET_PATH}: ")
+    assert said[incomplete][1].startswith("  compiled bone files: ")
     assert list(incomplete.rglob("*.nbi"))
