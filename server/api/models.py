@@ -436,6 +436,12 @@ class RecordingEntry(Answer):
     replay: str
 
 
+class ExportEntry(Answer):
+    name: str
+    bytes: int
+    created: float
+
+
 class Deleted(Answer):
     deleted: str
     kind: str
