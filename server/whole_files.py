@@ -203,13 +203,15 @@ def write_reserved(reserved: str | os.PathLike, path: str | os.PathLike, data: b
     held at ``reserved``: written over the reserved bytes in place (no new blocks on file
     systems that overwrite in place: ext4, XFS, tmpfs), cut to length, synced, then renamed
     onto ``path``, so ``path`` appears whole. Where that fails for want of room (a
-    copy-on-write file system), the room is given back and ``path`` written the usual way.
-    A file ``path`` held before is replaced either way."""
+    copy-on-write file system), or ``data`` is larger than the room held, the room is given
+    back and ``path`` written the usual way. A file ``path`` held before is replaced either
+    way."""
     reserved, path = Path(reserved), Path(path)
+    if len(data) > reserved.stat().st_size:  # more than was held: the usual way
+        reserved.unlink()
+        return write_whole(path, data)
     try:
         with open(reserved, "r+b") as f:
-            if len(data) > os.fstat(f.fileno()).st_size:
-                raise ValueError(f"{len(data)} bytes do not fit in the {reserved.name} reserve")
             f.write(data)
             f.truncate(len(data))
             f.flush()
