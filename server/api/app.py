@@ -86,6 +86,9 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     app.state.plane = plane
     app.state.stats = stats
     app.state.token = token
+    # The browser origins besides the server's own that may open its WebSockets
+    # (push_sockets.foreign_origin): those allowed to call the API.
+    app.state.ws_origins = tuple(plane.config.cors_origins)
     # The telemetry routes read the loop's state from it (routes_telemetry.loop_state).
     app.state.supervisor = supervisor
     if plane.config.cors_origins:
