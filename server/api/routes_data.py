@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path as FilePath
-from typing import Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
@@ -30,6 +30,7 @@ from .models import (
     ExportEntry,
     JobView,
     PhantomEntry,
+    PrintableText,
     RecordingEntry,
     RecordingStart,
     RestoreRequest,
@@ -42,7 +43,6 @@ from .models import (
 )
 from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
 from .sources import library_entries
-from .storage import printable_name
 
 router = APIRouter()
 UPLOAD_SUFFIX = re.compile(r"(\.bone\.npz|\.seg\.nrrd|\.nii\.gz|\.[A-Za-z0-9]{1,5})$")
@@ -81,13 +81,13 @@ def library(plane: PlaneDep) -> list[dict]:
                  "application/octet-stream": {"schema": {"type": "string",
                                                          "format": "binary"}}}}})
 async def upload(request: Request, plane: PlaneDep,
-                 filename: str = Query(..., min_length=1, max_length=200,
-                                       description="the file's name; its suffix tells the "
-                                                   "format (.nrrd, .nii.gz, .npy, …)")) -> dict:
+                 filename: Annotated[PrintableText, Query(
+                     min_length=1, max_length=200,
+                     description="the file's name; its suffix tells the format (.nrrd, "
+                                 ".nii.gz, .npy, …); no control characters")]) -> dict:
     """Upload one bone file as the raw request body (``curl --data-binary @ct.nrrd``). DICOM
     series and PNG stacks are folders: put them in the bone library instead. The answer's
     ``source`` loads it into a session."""
-    printable_name(filename, "upload's filename")
     match = UPLOAD_SUFFIX.search(FilePath(filename).name)
     if match is None:
         raise Invalid(f"{filename!r} has no file suffix to tell its format")
@@ -232,7 +232,7 @@ def exports(plane: PlaneDep) -> list[dict]:
     return plane.storage.list_exports()
 
 
-@router.delete("/exports/{name}", tags=["exports", "storage"], response_model=Deleted)
+@router.delete("/exports/{name:path}", tags=["exports", "storage"], response_model=Deleted)
 def delete_export(plane: PlaneDep, name: str = Path(description="the export's name, as "
                                                                 "``GET /v1/exports`` lists it"
                                                     )) -> dict:

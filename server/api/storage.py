@@ -31,7 +31,6 @@ import re
 import secrets
 import shutil
 import time
-import unicodedata
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -78,17 +77,6 @@ def plain_name(name: str, what: str) -> str:
             or name.startswith("."):
         raise BadName(f"{what} name {name!r} must be a plain name of letters, digits, "
                       "'_', '-', '.': no '/', '\\', '..', leading '.' or NUL")
-    return name
-
-
-def printable_name(name: str, what: str) -> str:
-    """``name`` if it holds no control character (NUL, newline, escape, U+007F–U+009F:
-    they end a name early in C, split log lines, and hide in a terminal); BadName else."""
-    bad = sorted({c for c in name if unicodedata.category(c) == "Cc"})
-    if bad:
-        shown = ", ".join(f"U+{ord(c):04X}" for c in bad)
-        raise BadName(f"the {what} holds control characters ({shown}): give a name without "
-                      "them")
     return name
 
 
