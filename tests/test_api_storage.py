@@ -307,6 +307,55 @@ def test_a_recording_is_capped_by_the_room_left_and_stops_cleanly_there(stack, a
     api.delete(f"/sessions/{sid}")
 
 
+# -- exports ------------------------------------------------------------------------------------
+def test_an_export_left_by_a_cut_off_download_is_listed_and_deleted(stack, api, tmp_path):
+    exports = stack.plane.data_dir / "exports"
+    s = _session(api)
+    # A download whose client went away mid-way: the server never got to delete the file.
+    with api.stream("GET", f"/sessions/{s['id']}/export/volume",
+                    params={"format": "npy"}) as r:
+        assert r.status_code == 200
+        left = sorted(exports.iterdir())
+    assert len(left) == 1 and left[0].stat().st_size > 0
+    left[0].with_name("export-0123456789abcdef.nrrd").write_bytes(b"NRRD0004 partial")
+    listed = {e["name"]: e for e in api.get("/exports").json()}
+    assert listed["export-0123456789abcdef.nrrd"]["bytes"] == 16
+    assert api.get("/storage").json()["kinds"]["exports"]["list"] == "/v1/exports"
+    with BurrRest(stack.url, TOKEN) as rest:
+        answer = rest.delete_export("export-0123456789abcdef.nrrd")
+        assert answer == {"deleted": "export-0123456789abcdef.nrrd", "kind": "export",
+                          "bytes": 16, "in_use_by": [], "note": None}
+        with pytest.raises(RestError) as err:
+            rest.delete_export("export-0123456789abcdef.nrrd")
+        assert err.value.status == 404
+    for name in {e["name"] for e in api.get("/exports").json()}:
+        # 404: the cut-off download's own clean-up came first after all.
+        assert api.delete(f"/exports/{name}").status_code in (200, 404)
+    assert api.get("/exports").json() == [] and not any(exports.iterdir())
+    api.delete(f"/sessions/{s['id']}")
+
+
+def test_a_starting_server_removes_what_a_killed_one_left_unfinished(tmp_path):
+    """Temporaries of writes under way (and those older servers named otherwise) and exports
+    no server serves any more; the user's files stay."""
+    stack = ServerStack(ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path), TOKEN,
+                        journal=False)
+    leftovers = ["exports/export-ddn13xab.npy", "exports/export-0123456789abcdef.bone.npz",
+                 "uploads/.0123456789abcdef.npy.k3j4h5g6.part", "uploads/.upload-abc123",
+                 "snapshots/.burrforce-x1y2z3.tmp", "snapshots/.a.bone.npz.q1w2e3r4.part",
+                 "recordings/.x.burrrec.a1b2c3d4.part", ".bone-generation.4242.tmp"]
+    kept = ["uploads/0123456789abcdef.npy", "snapshots/a.bone.npz",
+            "recordings/r.burrrec/chunk-000000.npy.part", "bone-generation"]
+    for rel in leftovers + kept:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x" * 10)
+    with stack:
+        for rel in leftovers:
+            assert not (tmp_path / rel).exists(), rel
+        for rel in kept:  # a torn chunk stays: the recording's reader reports it
+            assert (tmp_path / rel).exists(), rel
+
+
 # -- the Python client --------------------------------------------------------------------------
 def test_the_client_lists_downloads_and_deletes_every_kind(stack, api, tmp_path):
     data = _cube_bytes(12)
