@@ -53,6 +53,7 @@ RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
 #: Room a recording needs beyond its chunk files (which ``max_bytes`` bounds): meta, start
 #: patch and summary, all small.
 RECORDING_MARGIN_BYTES = 64 << 10
+EXPORT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,120}$")
 #: Temporary files of writes under way (``WholeFile``'s ``.NAME.XXXX.part``; older servers'
 #: ``.upload-*``, ``.burrforce-*.tmp`` and ``.bone-generation.PID.tmp``): a server that
 #: starts removes those a killed one left.
@@ -457,6 +458,9 @@ class Storage:
     def export_file(self, name: str) -> Path:
         """The file of export ``name`` in exports/."""
         name = plain_name(name, "export")
+        if not EXPORT_NAME.match(name):
+            raise BadName(f"export name {name!r}: letters, digits, '_', '-', '.' only, as "
+                          "GET /v1/exports lists them")
         path = self.exports_dir / name
         if not path.is_file():
             raise NotFound(f"no export {name!r}")
