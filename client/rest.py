@@ -634,12 +634,27 @@ class BurrRest:
     # -- storage --------------------------------------------------------------------------------
     def storage(self) -> dict:
         """The data directory's usage: ``budget_bytes`` (0: no limit), ``used_bytes``,
-        ``reserved_bytes`` (room running recordings may still fill), ``free_bytes`` (None
-        without a budget), ``disk_free_bytes`` and ``kinds``: per kind (uploads, snapshots,
-        recordings, exports, journal) its ``bytes``, ``items`` and whether it is ``counted``
-        against the budget. Writes that do not fit are refused (RestError 413 for an upload,
-        507 for a snapshot, export or recording)."""
+        ``reserved_bytes`` (room running recordings may still fill), ``free_bytes`` (the room
+        a write has: the smaller of the budget's and the disk's), ``disk_free_bytes`` and
+        ``kinds``: per kind (uploads, snapshots, recordings, exports, journal) its ``bytes``,
+        ``items`` and whether it is ``counted`` against the budget. Writes that do not fit
+        are refused (RestError 413 for an upload over the budget, 507 for a full disk and
+        for a snapshot, export or recording over the budget)."""
         return self._json("GET", "/storage")
+
+    def exports(self) -> list[dict]:
+        """Export files still on the server (a download that was cut off leaves one until
+        the server restarts): ``name``, ``bytes``, ``created`` (Unix s)."""
+        return self._json("GET", "/exports")
+
+    def delete_export(self, name: str) -> dict:
+        """Delete export ``name`` (as :meth:`exports` lists it); returns ``deleted`` and
+        ``bytes`` freed.
+
+        Raises:
+            RestError: 404 when there is no such export.
+        """
+        return self._json("DELETE", f"/exports/{_quoted(name)}")
 
     def uploads(self) -> list[dict]:
         """Uploaded bone files: ``id``, ``source`` (``upload:ID``), ``file``, ``bytes``,

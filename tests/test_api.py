@@ -285,6 +285,12 @@ def test_materials_and_forbidden_events(stack, api):
     r = api.put(f"/sessions/{sid}/materials/2", json={"name": "cortical", "us_n_mm2": 1,
                                                       "k": 1})
     assert r.status_code == 422 and "cortical" in r.text  # names are unique
+    for bad in ("cort\x00ical", "two\nlines", "\x1b[31mred"):  # NUL, newline, escape
+        r = api.put(f"/sessions/{sid}/materials/2", json={"name": bad, "us_n_mm2": 1, "k": 1})
+        assert r.status_code == 422 and "control characters" in r.text, (bad, r.text)
+        r = api.patch(f"/sessions/{sid}/materials/1", json={"name": bad})
+        assert r.status_code == 422 and "control characters" in r.text, (bad, r.text)
+    assert [m["name"] for m in api.get(f"/sessions/{sid}/materials").json()] == ["cortical"]
     _groove(stack, s, 0.0, 30)
     state = api.get(f"/sessions/{sid}/state").json()
     assert state["forbidden_events"] >= 1

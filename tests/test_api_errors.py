@@ -125,7 +125,7 @@ def test_unavailable_is_503_with_the_loops_message(tmp_path):
 
 @pytest.mark.parametrize(("kind", "status", "as_is"), [
     ("invalid", 422, True), ("not_found", 404, True), ("conflict", 409, True),
-    ("unavailable", 503, False), ("internal", 503, False),
+    ("no_room", 507, True), ("unavailable", 503, False), ("internal", 503, False),
 ])
 def test_each_kind_maps_to_one_error_and_status(kind, status, as_is):
     error = errors.from_command(CommandError(kind, "what the loop said"))

@@ -193,7 +193,7 @@ def test_a_recording_downloads_as_a_tar_that_replays_and_is_not_deleted_while_wr
 
 
 # -- names --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("kind", ["uploads", "snapshots", "recordings"])
+@pytest.mark.parametrize("kind", ["uploads", "snapshots", "recordings", "exports"])
 @pytest.mark.parametrize("name", [
     "..%2Fbait.bone.npz", "..%2F..%2Fbait.bone.npz", "%2Fetc%2Fpasswd", "..", "..%2F",
     "bait%00.bone.npz", "%2E%2E%2Fbait", "a%5C..%5Cbait", ".hidden",
@@ -202,7 +202,7 @@ def test_names_that_leave_their_folder_are_refused(stack, api, kind, name):
     # Bait one level up: a traversal that worked would list, read or delete it.
     bait = stack.plane.data_dir / "bait.bone.npz"
     bait.write_bytes(b"PK bait")
-    for method in ("GET", "DELETE"):
+    for method in ("DELETE",) if kind == "exports" else ("GET", "DELETE"):  # not served
         r = api.request(method, f"/{kind}/{name}")
         assert 400 <= r.status_code < 500, (method, r.status_code, r.text)
         assert r.status_code != 200
@@ -216,6 +216,18 @@ def test_a_bad_name_says_what_is_wrong(api):
     assert r.status_code == 400 and "16 hex digits" in _detail(r)
     r = api.get("/uploads/%2Fetc%2Fpasswd")
     assert r.status_code == 400 and "plain name" in _detail(r)
+
+
+@pytest.mark.parametrize("filename", ["cube\x00.npy", "cube.npy\x00.sh", "two\nlines.npy",
+                                      "\x1b[2Jcube.npy", "cube\x7f.npy", "cube\x85.npy"])
+def test_an_upload_filename_with_control_characters_is_refused(stack, api, filename):
+    uploads = stack.plane.roots.uploads
+    before = sorted(p.name for p in uploads.iterdir())
+    r = api.post("/uploads", params={"filename": filename}, content=_cube_bytes(4))
+    assert r.status_code == 422, r.text
+    assert "control characters" in r.text and "U+00" in r.text
+    assert filename not in r.text  # not echoed back
+    assert sorted(p.name for p in uploads.iterdir()) == before
 
 
 # -- the budget ---------------------------------------------------------------------------------
@@ -293,6 +305,55 @@ def test_a_recording_is_capped_by_the_room_left_and_stops_cleanly_there(stack, a
     assert report.reproduced and report.ticks == stopped["rows_written"]
     api.delete("/recordings/capped")
     api.delete(f"/sessions/{sid}")
+
+
+# -- exports ------------------------------------------------------------------------------------
+def test_an_export_left_by_a_cut_off_download_is_listed_and_deleted(stack, api, tmp_path):
+    exports = stack.plane.data_dir / "exports"
+    s = _session(api)
+    # A download whose client went away mid-way: the server never got to delete the file.
+    with api.stream("GET", f"/sessions/{s['id']}/export/volume",
+                    params={"format": "npy"}) as r:
+        assert r.status_code == 200
+        left = sorted(exports.iterdir())
+    assert len(left) == 1 and left[0].stat().st_size > 0
+    left[0].with_name("export-0123456789abcdef.nrrd").write_bytes(b"NRRD0004 partial")
+    listed = {e["name"]: e for e in api.get("/exports").json()}
+    assert listed["export-0123456789abcdef.nrrd"]["bytes"] == 16
+    assert api.get("/storage").json()["kinds"]["exports"]["list"] == "/v1/exports"
+    with BurrRest(stack.url, TOKEN) as rest:
+        answer = rest.delete_export("export-0123456789abcdef.nrrd")
+        assert answer == {"deleted": "export-0123456789abcdef.nrrd", "kind": "export",
+                          "bytes": 16, "in_use_by": [], "note": None}
+        with pytest.raises(RestError) as err:
+            rest.delete_export("export-0123456789abcdef.nrrd")
+        assert err.value.status == 404
+    for name in {e["name"] for e in api.get("/exports").json()}:
+        # 404: the cut-off download's own clean-up came first after all.
+        assert api.delete(f"/exports/{name}").status_code in (200, 404)
+    assert api.get("/exports").json() == [] and not any(exports.iterdir())
+    api.delete(f"/sessions/{s['id']}")
+
+
+def test_a_starting_server_removes_what_a_killed_one_left_unfinished(tmp_path):
+    """Temporaries of writes under way (and those older servers named otherwise) and exports
+    no server serves any more; the user's files stay."""
+    stack = ServerStack(ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path), TOKEN,
+                        journal=False)
+    leftovers = ["exports/export-ddn13xab.npy", "exports/export-0123456789abcdef.bone.npz",
+                 "uploads/.0123456789abcdef.npy.k3j4h5g6.part", "uploads/.upload-abc123",
+                 "snapshots/.burrforce-x1y2z3.tmp", "snapshots/.a.bone.npz.q1w2e3r4.part",
+                 "recordings/.x.burrrec.a1b2c3d4.part", ".bone-generation.4242.tmp"]
+    kept = ["uploads/0123456789abcdef.npy", "snapshots/a.bone.npz",
+            "recordings/r.burrrec/chunk-000000.npy.part", "bone-generation"]
+    for rel in leftovers + kept:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x" * 10)
+    with stack:
+        for rel in leftovers:
+            assert not (tmp_path / rel).exists(), rel
+        for rel in kept:  # a torn chunk stays: the recording's reader reports it
+            assert (tmp_path / rel).exists(), rel
 
 
 # -- the Python client --------------------------------------------------------------------------

@@ -3,6 +3,8 @@ each kind of failure, and nothing that parses an exception's text."""
 
 from __future__ import annotations
 
+import errno
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -65,6 +67,7 @@ def test_a_stopped_loop_is_unavailable():
     (TypeError("spec must be a SessionSpec"), "invalid"),
     (ValueError("radius"), "invalid"),
     (ZeroDivisionError("division by zero"), "internal"),
+    (OSError(errno.ENOSPC, "No space left on device", "meta.json"), "no_room"),
 ])
 def test_each_exception_has_its_kind(exc, kind):
     err = classify(exc)
@@ -73,6 +76,8 @@ def test_each_exception_has_its_kind(exc, kind):
         assert err.message == "ZeroDivisionError: division by zero"
     elif kind == "not_found":  # a KeyError's text unquoted
         assert err.message == exc.args[0]
+    elif kind == "no_room":  # said as a full disk, with the file
+        assert err.message == f"the disk is full: {exc}" and "meta.json" in err.message
     else:
         assert err.message == str(exc)
 

@@ -211,6 +211,41 @@ def test_websocket_refuses_a_bad_token_hz_and_session(stack):
         assert err.value.rcvd.code == code and says in err.value.rcvd.reason
 
 
+def test_websocket_from_a_foreign_origin_is_refused_unless_configured(stack):
+    """A browser says which page opened a WebSocket (Origin) and sends a token it holds along:
+    a page of another site is refused (4403) even with the right token; the server's own
+    pages (the live view), clients that send no Origin (the SDKs) and origins named in
+    cors_origins are admitted."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    _groove(stack, 2.0, 20)  # a packet to sample
+    url = _ws_url(stack, 7, token=TOKEN, hz=30)
+    own = stack.url  # http://127.0.0.1:PORT: what the live view's pages are served from
+    host, port = own.removeprefix("http://").rsplit(":", 1)
+    for origin in ("https://evil.example", f"http://{host}:{int(port) + 1}",
+                   f"http://localhost.evil.example:{port}", "null"):
+        with connect(url, origin=origin, open_timeout=10) as ws:
+            with pytest.raises(ConnectionClosed) as err:
+                ws.recv(timeout=10)
+        assert err.value.rcvd.code == 4403, origin
+        assert origin in err.value.rcvd.reason and "cors_origins" in err.value.rcvd.reason
+    for origin in (own, own.upper().replace("HTTP", "http"), None):
+        with connect(url, origin=origin, open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["session_id"] == 7, origin
+    app_state = stack.server.config.app.state  # serve's cors_origins, as create_app set it
+    configured = app_state.ws_origins
+    try:
+        app_state.ws_origins = ("https://viewer.example",)
+        with connect(url, origin="https://viewer.example", open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["session_id"] == 7
+        app_state.ws_origins = ("*",)
+        with connect(url, origin="https://evil.example", open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))["session_id"] == 7
+    finally:
+        app_state.ws_origins = configured
+
+
 def test_the_reader_follows_a_restarted_hot_loop(stack):
     reader = stack.plane.telemetry
     _groove(stack, 5.0, n=20)

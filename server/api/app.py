@@ -15,6 +15,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from .. import __version__
 from ..realtime import is_realtime
+from ..whole_files import is_disk_full
 from . import (
     routes_calibration,
     routes_data,
@@ -25,7 +26,7 @@ from . import (
 )
 from .config import TOKEN_FILE
 from .docs_pages import add_docs_pages
-from .errors import ApiError, Invalid, Unauthorized, http_status
+from .errors import ApiError, Invalid, Unauthorized, from_disk_full, http_status
 from .metrics import LoopStats, registry
 from .plane import ControlPlane
 from .sources import SourceError
@@ -85,6 +86,9 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     app.state.plane = plane
     app.state.stats = stats
     app.state.token = token
+    # The browser origins besides the server's own that may open its WebSockets
+    # (push_sockets.foreign_origin): those allowed to call the API.
+    app.state.ws_origins = tuple(plane.config.cors_origins)
     # The telemetry routes read the loop's state from it (routes_telemetry.loop_state).
     app.state.supervisor = supervisor
     if plane.config.cors_origins:
@@ -105,6 +109,14 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     async def _source_error(request: Request, exc: SourceError) -> JSONResponse:
         # A bad bone source or snapshot name raised anywhere below a route: its own error.
         return await _api_error(request, exc.as_api_error())
+
+    @app.exception_handler(OSError)
+    async def _os_error(request: Request, exc: OSError) -> JSONResponse:
+        # A full disk where no service said what it was writing: still an answer (507), not
+        # a bare 500. Any other OSError is a bug, answered 500 with its traceback logged.
+        if not is_disk_full(exc):
+            raise exc
+        return await _api_error(request, from_disk_full(exc, plane.storage.data_dir))
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

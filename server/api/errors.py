@@ -53,7 +53,8 @@ class TooLarge(ApiError):
 
 
 class NoRoom(ApiError):
-    """A write (snapshot, export, recording) does not fit in the data budget."""
+    """A write (upload, snapshot, export, recording) does not fit in the data budget or on
+    the disk (507 Insufficient Storage); the message says what it needed and what is free."""
 
 
 class Busy(ApiError):
@@ -80,6 +81,15 @@ HTTP_STATUS: dict[type[ApiError], int] = {
 }
 
 
+def from_disk_full(exc: OSError, data_dir: object) -> NoRoom:
+    """The answer to a write the disk refused (``whole_files.is_disk_full``) where no route
+    said what it was writing: which file, and where to make room."""
+    where = f" ({exc.filename})" if exc.filename else ""
+    return NoRoom(f"the disk is full: a write{where} was refused ({exc.strerror}). Free "
+                  f"space on the disk that holds the data directory ({data_dir}), or delete "
+                  "what is stored (GET /v1/storage shows it)")
+
+
 def http_status(error: ApiError | type[ApiError]) -> int:
     """The HTTP status ``error`` (an instance or a class) is answered with; 500 for an
     ``ApiError`` of no known kind."""
@@ -92,18 +102,19 @@ def http_status(error: ApiError | type[ApiError]) -> int:
 
 #: The domain error of each kind of failed hot-loop command (``hotloop.errors.KINDS``).
 COMMAND_ERRORS: dict[str, type[ApiError]] = {
-    "invalid": Invalid, "not_found": NotFound, "conflict": Conflict,
+    "invalid": Invalid, "not_found": NotFound, "conflict": Conflict, "no_room": NoRoom,
     "unavailable": Unavailable, "internal": Unavailable,
 }
 #: Kinds whose message reaches the caller as the loop said it; the others are prefixed with
 #: what failed.
-SAID_AS_IS = frozenset({"invalid", "not_found", "conflict"})
+SAID_AS_IS = frozenset({"invalid", "not_found", "conflict", "no_room"})
 
 
 def from_command(exc: CommandError) -> ApiError:
     """The domain error a failed hot-loop command is: bad arguments → :class:`Invalid`, a
-    missing session → :class:`NotFound`, a session id in use → :class:`Conflict`, a dead loop
-    or anything else → :class:`Unavailable` (its message prefixed with what failed)."""
+    missing session → :class:`NotFound`, a session id in use → :class:`Conflict`, a full disk
+    → :class:`NoRoom`, a dead loop or anything else → :class:`Unavailable` (its message
+    prefixed with what failed)."""
     message = (exc.message if exc.kind in SAID_AS_IS
                else f"the hot loop cannot do it: {exc.message}")
     return COMMAND_ERRORS[exc.kind](message)

@@ -23,11 +23,12 @@ newer generation, which would let the client apply deltas to the wrong base.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from pathlib import Path
 from typing import Protocol
+
+from ..whole_files import write_whole
 
 try:
     import fcntl
@@ -88,18 +89,9 @@ def _read(path: Path) -> int | None:
 
 
 def _write(path: Path, generation: int) -> None:
-    tmp = path.with_name(f".{COUNTER_FILE}.{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="ascii") as f:
-        f.write(f"{generation}\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    if hasattr(os, "O_DIRECTORY"):  # the rename itself must survive a power cut
-        fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    # Whole or not at all, synced with its folder: a crash cannot hand a number out twice,
+    # and a full disk leaves no temporary file.
+    write_whole(path, f"{generation}\n".encode("ascii"), permissions=0o644)
 
 
 def _fallback() -> int:

@@ -6,9 +6,10 @@ Units are in the field names: mm, N, rpm, N/mm² (= N·mm per mm³ removed), s.
 from __future__ import annotations
 
 import math
+import unicodedata
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
 from ...proto.frames import FRAMES
 from ..haptics.profiles import PROFILE_NAMES
@@ -30,6 +31,20 @@ Coord = Annotated[float, Field(allow_inf_nan=False, ge=-1e9, le=1e9)]
 Point = Annotated[tuple[Coord, Coord, Coord], Field(description="x, y, z")]
 Quat = Annotated[tuple[Finite, Finite, Finite, Finite], Field(description="x, y, z, w")]
 SessionId = Annotated[int, Field(ge=0, le=(1 << 32) - 1)]
+
+
+def no_control_characters(text: str) -> str:
+    """``text`` unless it holds a control character (NUL, newline, escape, U+007F–U+009F):
+    in a name they cut it short in C, split log lines and hide in a terminal."""
+    bad = sorted({c for c in text if unicodedata.category(c) == "Cc"})
+    if bad:
+        raise ValueError("a name must not hold control characters; this one holds "
+                         + ", ".join(f"U+{ord(c):04X}" for c in bad))
+    return text
+
+
+#: A name the user gives (a material's, an upload's file name): printable characters only.
+PrintableText = Annotated[str, AfterValidator(no_control_characters)]
 DeviceName = Literal[(*PROFILE_NAMES, "none")]  # type: ignore[valid-type]
 
 
@@ -188,14 +203,14 @@ class SessionCreate(Strict):
 
 
 class MaterialBody(Strict):
-    name: str = Field(min_length=1, max_length=64)
+    name: PrintableText = Field(min_length=1, max_length=64)
     us_n_mm2: Finite = Field(ge=0.0, le=1e7)
     k: Finite = Field(ge=0.0, le=100.0)
     forbidden: bool = False
 
 
 class MaterialPatch(Strict):
-    name: str | None = Field(None, min_length=1, max_length=64)
+    name: PrintableText | None = Field(None, min_length=1, max_length=64)
     us_n_mm2: Finite | None = Field(None, ge=0.0, le=1e7)
     k: Finite | None = Field(None, ge=0.0, le=100.0)
     forbidden: bool | None = None
@@ -434,6 +449,12 @@ class RecordingEntry(Answer):
     complete: bool
     recording_session: int | None
     replay: str
+
+
+class ExportEntry(Answer):
+    name: str
+    bytes: int
+    created: float
 
 
 class Deleted(Answer):

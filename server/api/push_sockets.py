@@ -1,13 +1,21 @@
 """What every push WebSocket (mesh chunks, telemetry) does alike: the handshake with its
-subprotocol, the token check, the session id, the server-wide count of open sockets, and
-noticing that the client left. A close before the handshake would reach the client as a bare
-HTTP 403; these close after it, with a code and a reason."""
+subprotocol, the origin and token checks, the session id, the server-wide count of open
+sockets, and noticing that the client left. A close before the handshake would reach the
+client as a bare HTTP 403; these close after it, with a code and a reason.
+
+Browsers do not apply the same-origin policy to WebSockets: any page a user visits may open
+one to this server, and a token it holds (a page the server itself served, a token pasted
+into another tool) would be sent along. A browser always says which page opened the socket
+(``Origin``), so one from a foreign origin is refused (4403) unless ``cors_origins`` names it
+("*": any). Clients that are not browsers (the engine SDKs, ``burrforce.client.mesh``) send
+no ``Origin`` and are not affected."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import hmac
+from urllib.parse import urlsplit
 
 from fastapi import WebSocket, WebSocketDisconnect
 
@@ -21,6 +29,7 @@ def close_reason(text: str) -> str:
 #: can set no header, and a token in the URL ends up in access logs).
 SUBPROTOCOL = "burrforce"
 _BEARER_PROTOCOL = "bearer."
+_DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
 def query_int(text: str | None, name: str, default: int | None, lo: int, hi: int
@@ -50,9 +59,47 @@ async def accept(ws: WebSocket) -> None:
     await ws.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in _offered(ws) else None)
 
 
+def _origin_key(url: str) -> tuple[str, int] | None:
+    """(host, port) of an ``Origin`` value, the port defaulted from its scheme."""
+    parts = urlsplit(url)
+    if parts.scheme not in _DEFAULT_PORTS or not parts.hostname:
+        return None
+    try:
+        return parts.hostname.lower(), parts.port or _DEFAULT_PORTS[parts.scheme]
+    except ValueError:  # a port out of range
+        return None
+
+
+def foreign_origin(ws: WebSocket) -> str | None:
+    """The ``Origin`` the socket came from if it may not open one: neither this server's own
+    (the ``Host`` it was reached at) nor one of ``app.state.ws_origins`` (``cors_origins``;
+    "*": any). None without an ``Origin`` (not a browser) or when it may."""
+    origin = ws.headers.get("origin")
+    if origin is None:
+        return None
+    allowed = getattr(ws.app.state, "ws_origins", ())
+    if "*" in allowed or origin.rstrip("/") in (a.rstrip("/") for a in allowed):
+        return None
+    own = _origin_key(origin)
+    host = ws.headers.get("host", "")
+    if own is not None:
+        # The Host as the browser reached it: a port left out is the origin scheme's default
+        # (also behind a TLS proxy that keeps the Host, where the socket itself is ws://).
+        scheme = urlsplit(origin).scheme
+        if _origin_key(f"{scheme}://{host}") == own:
+            return None
+    return origin
+
+
 async def admitted_session_id(ws: WebSocket, session_id: str, token: str | None) -> int | None:
-    """After the query was parsed: the token checked (4401) and the path's session id parsed
-    (4422), for every push WebSocket; the id, or None once the socket is closed."""
+    """After the query was parsed: the origin (4403) and the token checked (4401) and the
+    path's session id parsed (4422), for every push WebSocket; the id, or None once the
+    socket is closed."""
+    origin = foreign_origin(ws)
+    if origin is not None:
+        await ws.close(4403, close_reason(f"origin {origin} may not open this WebSocket: add "
+                                          "it to the server's cors_origins"))
+        return None
     if not _authorized(ws, token):
         await ws.close(4401, "missing or wrong bearer token (Authorization: Bearer TOKEN, "
                              "the subprotocol bearer.TOKEN, or ?token=TOKEN)")

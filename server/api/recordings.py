@@ -2,8 +2,9 @@
 
 A recording starts from a snapshot of the session's bone (``record.format.SNAPSHOT_NAME``) in
 a new ``.burrrec`` folder of the data directory; the loop then appends the poses, engine
-inputs, forces and removals, capped by the data budget's room (``Storage.recording_cap``) so
-it stops cleanly at the budget. Raises the domain errors of ``errors``.
+inputs, forces and removals, capped by the room left in the data budget and on the disk
+(``Storage.recording_cap``) so it stops cleanly there. Raises the domain errors of
+``errors``.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import time
 
 from ..bone.loaders import save_bone
 from ..record.format import SNAPSHOT_NAME
+from ..whole_files import DiskFull
 from .errors import Conflict
 from .sessions import ManagedSession
 from .storage import Storage
@@ -33,7 +35,7 @@ class Recordings:
 
         Raises:
             Conflict: the session records already, or the recording exists.
-            NoRoom: the data budget is full.
+            NoRoom: the data budget or the disk is full (nothing of the recording is kept).
             Unavailable: the loop cannot start it.
         """
         with session.lock:
@@ -44,15 +46,20 @@ class Recordings:
             name = name or f"session-{session.id}-{time.strftime('%Y%m%d-%H%M%S')}"
             path = self.storage.new_recording_dir(name)
             try:
-                save_bone(bone, path / SNAPSHOT_NAME)
-                # Capped by the budget's room left, so it stops cleanly at the budget.
+                try:
+                    save_bone(bone, path / SNAPSHOT_NAME)
+                except DiskFull as exc:
+                    raise self.storage.disk_filled(exc, "the recording's start snapshot"
+                                                   ) from None
+                # Capped by the room left in the budget and on the disk, so it stops cleanly
+                # there instead of failing on a full disk.
                 max_bytes = self.storage.recording_cap(max_bytes)
                 result = self.pool.call("start_recording", session_id=session.id,
                                         path=str(path), snapshot_version=bone.grid.version,
                                         bone_name=session.source.source,
                                         max_bytes=max_bytes)
             except Exception:
-                shutil.rmtree(path, ignore_errors=True)
+                shutil.rmtree(path, ignore_errors=True)  # nothing of it is kept
                 raise
             session.recording = {"name": path.name, "path": str(path),
                                  "max_bytes": max_bytes, **result}  # type: ignore[dict-item]

@@ -3,23 +3,19 @@ brick deltas, snapshots and recordings, and the storage they take (``storage``).
 
 from __future__ import annotations
 
-import os
 import re
-import secrets
-import tempfile
 from pathlib import Path as FilePath
-from typing import Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
-from starlette.concurrency import run_in_threadpool
 
 from ...proto.bricks import encode_delta
 from ..bone import PHANTOMS
 from ..bone.deltas import MAX_BRICKS_LIMIT, brick_delta
 from ..bone.export import VOLUME_MEDIA_TYPES, write_volume
-from ..bone.loaders import save_bone
+from ..bone.loaders import write_bone
 from ..bone.mesh import MESH_FORMATS, surface_mesh
 from ..bone.phantoms import PHANTOM_VOXEL_MM
 from ..record import RecordingError
@@ -31,8 +27,10 @@ from .generation import bone_generation
 from .models import (
     MAX_BONE_VERSION,
     Deleted,
+    ExportEntry,
     JobView,
     PhantomEntry,
+    PrintableText,
     RecordingEntry,
     RecordingStart,
     RestoreRequest,
@@ -45,7 +43,6 @@ from .models import (
 )
 from .report_http import REPORT_RESPONSES, ReportFormat, ReportThreshold, report_response
 from .sources import library_entries
-from .storage import over_budget
 
 router = APIRouter()
 UPLOAD_SUFFIX = re.compile(r"(\.bone\.npz|\.seg\.nrrd|\.nii\.gz|\.[A-Za-z0-9]{1,5})$")
@@ -55,6 +52,11 @@ BONE_MEDIA_TYPE = ("application/octet-stream", ".bone.npz")
 #: Response headers naming the bone state an export holds (an npy file cannot say it).
 GENERATION_HEADER = "X-Burrforce-Bone-Generation"
 VERSION_HEADER = "X-Burrforce-Bone-Version"
+#: The most an npy export's header takes (format 1.0 pads it to a multiple of 64; a 3-D
+#: uint8 array's fits in 128).
+NPY_HEADER_BYTES = 128
+#: A binary STL: an 80-byte header and a facet count, then 50 bytes a facet.
+STL_HEADER_BYTES, STL_FACET_BYTES = 84, 50
 
 
 # -- bones ------------------------------------------------------------------------------------
@@ -79,9 +81,10 @@ def library(plane: PlaneDep) -> list[dict]:
                  "application/octet-stream": {"schema": {"type": "string",
                                                          "format": "binary"}}}}})
 async def upload(request: Request, plane: PlaneDep,
-                 filename: str = Query(..., min_length=1, max_length=200,
-                                       description="the file's name; its suffix tells the "
-                                                   "format (.nrrd, .nii.gz, .npy, …)")) -> dict:
+                 filename: Annotated[PrintableText, Query(
+                     min_length=1, max_length=200,
+                     description="the file's name; its suffix tells the format (.nrrd, "
+                                 ".nii.gz, .npy, …); no control characters")]) -> dict:
     """Upload one bone file as the raw request body (``curl --data-binary @ct.nrrd``). DICOM
     series and PNG stacks are folders: put them in the bone library instead. The answer's
     ``source`` loads it into a session."""
@@ -90,31 +93,12 @@ async def upload(request: Request, plane: PlaneDep,
         raise Invalid(f"{filename!r} has no file suffix to tell its format")
     limit = plane.config.upload_max_bytes
     declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise TooLarge(f"the upload is {int(declared):,} bytes; the limit is {limit:,} "
+    declared_bytes = int(declared) if declared is not None and declared.isdigit() else None
+    if declared_bytes is not None and declared_bytes > limit:
+        raise TooLarge(f"the upload is {declared_bytes:,} bytes; the limit is {limit:,} "
                        "(serve's upload_max_mb)")
-    # Walking the data directory takes a while with many recordings: not on the event loop.
-    usage = await run_in_threadpool(plane.storage.require_room, "the upload", TooLarge,
-                                    int(declared) if declared and declared.isdigit() else 0)
-    upload_id = secrets.token_hex(8)
-    final = plane.roots.uploads / (upload_id + match.group(1).lower())
-    fd, tmp = tempfile.mkstemp(prefix=".upload-", dir=plane.roots.uploads)
-    size = 0
-    try:
-        with os.fdopen(fd, "wb") as f:
-            async for chunk in request.stream():
-                size += len(chunk)
-                if size > limit:
-                    raise TooLarge(f"the upload exceeds the limit of {limit:,} bytes "
-                                   "(serve's upload_max_mb)")
-                if not usage.fits(size):
-                    raise over_budget(usage, "the upload", TooLarge, size)
-                f.write(chunk)
-        if size == 0:
-            raise Invalid("the upload is empty")
-        os.replace(tmp, final)
-    finally:
-        FilePath(tmp).unlink(missing_ok=True)
+    upload_id, size = await plane.storage.receive_upload(
+        request.stream(), match.group(1).lower(), limit, declared_bytes)
     return {"id": upload_id, "source": f"upload:{upload_id}", "bytes": size,
             "filename": FilePath(filename).name}
 
@@ -205,16 +189,16 @@ def export_volume(plane: PlaneDep, session_id: int = SessionPath,
     headers = _state_headers(generation, bone.grid.version)
     if format == "bone":
         media, suffix = BONE_MEDIA_TYPE
-        path = plane.storage.export_file(suffix)
-        save_bone(bone, path, generation=generation)
-        plane.storage.check_written(path, "the export")
+        path = plane.storage.write_export(suffix, lambda f: write_bone(bone, f, generation))
         return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}"
                                            f"{suffix}", headers)
     media, suffix = VOLUME_MEDIA_TYPES[format]
-    path = plane.storage.export_file(suffix)
-    with open(path, "wb") as f:
-        write_volume(bone.grid, f, format, what, generation=generation)
-    plane.storage.check_written(path, "the export")
+    # An npy file's size is known before it is written (its header and one byte a voxel):
+    # a disk without room for it is told so before anything is written.
+    needed = NPY_HEADER_BYTES + int(bone.grid.density.size) if format == "npy" else None
+    path = plane.storage.write_export(
+        suffix, lambda f: write_volume(bone.grid, f, format, what, generation=generation),
+        needed)
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}-{what}"
                                        f"{suffix}", headers)
 
@@ -235,11 +219,25 @@ def export_mesh(plane: PlaneDep, session_id: int = SessionPath,
     except ValueError as exc:
         raise Invalid(str(exc)) from None
     writer, media, suffix = MESH_FORMATS[format]
-    path = plane.storage.export_file(suffix)
-    with open(path, "wb") as f:
-        writer(mesh, f)
-    plane.storage.check_written(path, "the export")
+    needed = STL_HEADER_BYTES + STL_FACET_BYTES * mesh.n_faces if format == "stl" else None
+    path = plane.storage.write_export(suffix, lambda f: writer(mesh, f), needed)
     return _file_response(path, media, f"session-{session_id}-v{bone.grid.version}{suffix}")
+
+
+@router.get("/exports", tags=["exports", "storage"], response_model=list[ExportEntry])
+def exports(plane: PlaneDep) -> list[dict]:
+    """Export files still in the data directory: ``name``, ``bytes``, ``created`` (Unix s).
+    An export is deleted once it was sent; one whose download was cut off stays (until the
+    server restarts) and is deleted here."""
+    return plane.storage.list_exports()
+
+
+@router.delete("/exports/{name:path}", tags=["exports", "storage"], response_model=Deleted)
+def delete_export(plane: PlaneDep, name: str = Path(description="the export's name, as "
+                                                                "``GET /v1/exports`` lists it"
+                                                    )) -> dict:
+    """Delete an export file (one still being downloaded goes on being sent)."""
+    return plane.storage.delete_export(name)
 
 
 @router.get("/sessions/{session_id}/deltas", tags=["exports"],

@@ -1,14 +1,20 @@
 """The data directory as the user sees it: what is stored (uploads, snapshots, recordings and
-the exports being served), how much of the budget it takes, writing into it within the budget,
+the exports being served), how much room it takes and has, writing into it within that room,
 and deleting from it safely. :class:`Storage` is the only code that lists, sizes or deletes
 these files.
 
 The budget (``ServeConfig.data_budget_bytes``, 0: none) counts every file under uploads/,
 snapshots/, recordings/ and exports/; the journal (data_dir/journal) is reported but not
-counted, since the server needs it whatever the user keeps. A running recording holds room up
-to its ``max_bytes`` (reserved): it was capped by the room left when it started, so it stops
-cleanly at the budget instead of filling the disk, and other writes cannot take that room
+counted, since the server needs it whatever the user keeps. The disk that holds the data
+directory limits too: the room left is the smaller of the two (``room``). A running recording
+holds room up to its ``max_bytes`` (reserved): it was capped by the room left when it started,
+so it stops cleanly there instead of filling the disk, and other writes cannot take that room
 from it.
+
+Every file is written whole or not at all (``whole_files.WholeFile``): a write the disk
+refuses under way is answered 507 (NoRoom) and leaves nothing behind. Temporary files of a
+server that was killed mid-write, and exports it never finished serving, are removed when the
+next one starts (:meth:`Storage.remove_leftovers`).
 
 Names from URLs are resolved here and only here: a name is one plain path component of the
 kind's form (an upload id, a snapshot or recording name), never ``..``, a slash, an absolute
@@ -19,90 +25,39 @@ Raises the domain errors of ``errors`` (BadName, NotFound, Conflict, NoRoom, Too
 
 from __future__ import annotations
 
-import os
+import asyncio
+import logging
 import re
+import secrets
 import shutil
-import tempfile
 import time
-from dataclasses import dataclass
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 from ..bone import Bone
-from ..bone.loaders import save_bone
+from ..bone.loaders import write_bone
+from ..whole_files import DiskFull, WholeFile, disk_free_bytes
 from .archive import Archive, tar_archive
-from .errors import ApiError, BadName, Conflict, NoRoom, NotFound
+from .errors import ApiError, BadName, Conflict, Invalid, NoRoom, NotFound, TooLarge
 from .jobs import JobTable
+from .room import COUNTED, UNCOUNTED, Usage, disk_filled, no_room, tree_bytes
 from .sessions import SessionTable
 from .sources import SNAPSHOT_SUFFIX, UPLOAD_ID, SourceError, SourceRoots, snapshot_path
 
-#: Folders of the data directory the budget counts, by kind.
-COUNTED = ("uploads", "snapshots", "recordings", "exports")
-#: Folders reported but not counted.
-UNCOUNTED = ("journal",)
+log = logging.getLogger("burrforce.api")
+
 RECORDING_SUFFIX = ".burrrec"
 RECORDING_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,80}$")
 #: Room a recording needs beyond its chunk files (which ``max_bytes`` bounds): meta, start
 #: patch and summary, all small.
 RECORDING_MARGIN_BYTES = 64 << 10
-#: Where the user looks and what the user deletes, quoted in every over-budget answer.
-WHAT_TO_DELETE = ("GET /v1/storage shows what is stored; DELETE /v1/uploads/ID, "
-                  "/v1/snapshots/NAME or /v1/recordings/NAME frees it")
-
-
-# -- usage --------------------------------------------------------------------------------------
-def tree_bytes(path: Path) -> tuple[int, int]:
-    """(bytes, files) of the regular files under ``path`` (symbolic links are not followed;
-    files removed meanwhile, like an export just served, are skipped)."""
-    total = files = 0
-    todo = [path]
-    while todo:
-        try:
-            entries = os.scandir(todo.pop())
-        except (FileNotFoundError, NotADirectoryError):
-            continue
-        with entries:
-            for entry in entries:
-                try:
-                    if entry.is_dir(follow_symlinks=False):
-                        todo.append(Path(entry.path))
-                    elif entry.is_file(follow_symlinks=False):
-                        total += entry.stat(follow_symlinks=False).st_size
-                        files += 1
-                except FileNotFoundError:
-                    pass
-    return total, files
-
-
-@dataclass(frozen=True)
-class Usage:
-    """The data directory's usage at one moment.
-
-    Attributes:
-        bytes_by_kind: bytes per folder (``COUNTED`` and ``UNCOUNTED``).
-        items_by_kind: uploads, snapshots, recordings and files (exports, journal) per folder.
-        reserved_bytes: room held for running recordings (up to their ``max_bytes``).
-        budget_bytes: the budget, 0 for none.
-    """
-
-    bytes_by_kind: dict[str, int]
-    items_by_kind: dict[str, int]
-    reserved_bytes: int
-    budget_bytes: int
-
-    @property
-    def used_bytes(self) -> int:
-        return sum(self.bytes_by_kind[k] for k in COUNTED)
-
-    @property
-    def free_bytes(self) -> int | None:
-        """Room left under the budget (None: no budget; never negative)."""
-        if not self.budget_bytes:
-            return None
-        return max(0, self.budget_bytes - self.used_bytes - self.reserved_bytes)
-
-    def fits(self, incoming_bytes: int) -> bool:
-        return not self.budget_bytes or (
-            self.used_bytes + self.reserved_bytes + incoming_bytes <= self.budget_bytes)
+EXPORT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,120}$")
+#: Temporary files of writes under way (``WholeFile``'s ``.NAME.XXXX.part``; older servers'
+#: ``.upload-*``, ``.burrforce-*.tmp`` and ``.bone-generation.PID.tmp``): a server that
+#: starts removes those a killed one left.
+LEFTOVER = re.compile(r"^\.(.+\.part|upload-.*|burrforce-.*\.tmp|bone-generation\..*\.tmp)$")
 
 
 def _items(kind: str, folder: Path, files: int) -> int:
@@ -113,29 +68,6 @@ def _items(kind: str, folder: Path, files: int) -> int:
     if kind == "recordings":
         return sum(1 for p in folder.glob("*" + RECORDING_SUFFIX) if p.is_dir())
     return files
-
-
-def human_bytes(n: int) -> str:
-    """``1536`` → ``1.5 KiB``."""
-    value = float(n)
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if abs(value) < 1024 or unit == "TiB":
-            return f"{int(value)} B" if unit == "B" else f"{value:.1f} {unit}"
-        value /= 1024
-    raise AssertionError("unreachable")
-
-
-def over_budget(u: Usage, what: str, error: type[ApiError] = NoRoom,
-                incoming_bytes: int = 0) -> ApiError:
-    """The answer to a write that does not fit: the budget, the usage, what to delete
-    (``error``: NoRoom, or TooLarge for an upload)."""
-    parts = ", ".join(f"{k} {human_bytes(u.bytes_by_kind[k])}" for k in COUNTED)
-    held = (f", {human_bytes(u.reserved_bytes)} held for running recordings"
-            if u.reserved_bytes else "")
-    size = f" ({human_bytes(incoming_bytes)})" if incoming_bytes else ""
-    return error(f"{what}{size} does not fit in the data directory's budget of "
-                 f"{human_bytes(u.budget_bytes)} (data_budget_bytes): "
-                 f"{human_bytes(u.used_bytes)} is used ({parts}){held}. {WHAT_TO_DELETE}")
 
 
 # -- names --------------------------------------------------------------------------------------
@@ -214,17 +146,38 @@ class Storage:
         self.budget_bytes = int(budget_bytes)
         self.sessions = sessions
         self.jobs = jobs
+        self.remove_leftovers()
+
+    def remove_leftovers(self) -> list[Path]:
+        """Remove what a server killed mid-write left: temporary files (``LEFTOVER``) in the
+        data directory and its kind folders, and every export (an export is served once,
+        and no server serves those of the one before). Call at start, before any write;
+        returns what was removed."""
+        removed: list[Path] = []
+        for folder in (self.data_dir, self.roots.uploads, self.roots.snapshots,
+                       self.recordings_dir, self.exports_dir):
+            for path in folder.iterdir():
+                if (folder == self.exports_dir or LEFTOVER.match(path.name)) \
+                        and not path.is_symlink() and path.is_file():
+                    path.unlink(missing_ok=True)
+                    removed.append(path)
+        if removed:
+            log.info("removed %d file(s) a stopped server left unfinished: %s", len(removed),
+                     ", ".join(str(p.relative_to(self.data_dir)) for p in removed[:10]))
+        return removed
 
     # -- usage ------------------------------------------------------------------------------
     def measure(self) -> Usage:
-        """What the data directory holds now, and what running recordings may still add."""
+        """What the data directory holds now, what running recordings may still add, and
+        what the disk has free."""
         sizes: dict[str, int] = {}
         items: dict[str, int] = {}
         for kind in COUNTED + UNCOUNTED:
             folder = self.data_dir / kind
             sizes[kind], files = tree_bytes(folder)
             items[kind] = _items(kind, folder, files) if folder.is_dir() else 0
-        return Usage(sizes, items, self._reserved_bytes(), self.budget_bytes)
+        return Usage(sizes, items, self._reserved_bytes(), self.budget_bytes,
+                     disk_free_bytes(self.data_dir))
 
     def _running_recordings(self) -> list[tuple[int, dict]]:
         return [(s.id, rec) for s in self.sessions.values()
@@ -242,57 +195,76 @@ class Storage:
         return reserved
 
     def report(self) -> dict:
-        """``GET /v1/storage``: usage per kind, the budget, what is left."""
+        """``GET /v1/storage``: usage per kind, the budget, what is left (the smaller of the
+        budget's room and the disk's)."""
         u = self.measure()
-        try:
-            disk_free = shutil.disk_usage(self.data_dir).free
-        except OSError:
-            disk_free = None
         kinds = {kind: {"bytes": u.bytes_by_kind[kind], "items": u.items_by_kind[kind],
                         "counted": kind in COUNTED} for kind in COUNTED + UNCOUNTED}
-        for kind in ("uploads", "snapshots", "recordings"):
+        for kind in ("uploads", "snapshots", "recordings", "exports"):
             kinds[kind]["list"] = f"/v1/{kind}"
         return {"data_dir": str(self.data_dir), "budget_bytes": u.budget_bytes,
                 "used_bytes": u.used_bytes, "reserved_bytes": u.reserved_bytes,
-                "free_bytes": u.free_bytes, "disk_free_bytes": disk_free, "kinds": kinds}
+                "free_bytes": u.free_bytes, "disk_free_bytes": u.disk_free_bytes,
+                "kinds": kinds}
 
     def require_room(self, what: str, error: type[ApiError] = NoRoom,
                      incoming_bytes: int = 0) -> Usage:
-        """Raise ``error`` unless ``incoming_bytes`` more fit under the budget; with no size
-        known (0), unless some room is left at all. Returns the usage measured."""
+        """Raise unless ``incoming_bytes`` more fit in the budget and on the disk; with no
+        size known (0), unless some room is left at all: ``error`` over the budget, NoRoom
+        on a full disk. Returns the usage measured."""
         u = self.measure()
-        full = u.budget_bytes and u.free_bytes == 0
-        if not u.fits(incoming_bytes) or (incoming_bytes == 0 and full):
-            raise over_budget(u, what, error, incoming_bytes)
+        if u.limited_by(incoming_bytes) is not None:
+            raise no_room(u, what, self.data_dir, error, incoming_bytes)
         return u
 
     def check_written(self, path: Path, what: str) -> None:
         """After writing ``path`` (whose size was unknown beforehand): if it took the data
-        directory over the budget, remove it and raise NoRoom."""
+        directory over the budget, or the disk below the room running recordings hold,
+        remove it and raise NoRoom."""
         u = self.measure()
         if u.fits(0):
             return
         size = tree_bytes(path)[0] if path.is_dir() else path.stat().st_size
         _remove(path)
-        raise over_budget(u, what, NoRoom, size)
+        raise no_room(self.measure(), what, self.data_dir, NoRoom, size)
 
     def recording_cap(self, max_bytes: int) -> int:
-        """``max_bytes`` capped by the room left (measured after the recording's start
-        snapshot was written); NoRoom when nothing is left."""
+        """``max_bytes`` capped by the room left in the budget and on the disk (measured
+        after the recording's start snapshot was written); NoRoom when nothing is left."""
         u = self.measure()
-        if not u.budget_bytes:
+        if u.free_bytes is None:
             return max_bytes
-        room = (u.free_bytes or 0) - RECORDING_MARGIN_BYTES
+        room = u.free_bytes - RECORDING_MARGIN_BYTES
         if room <= 0:
-            raise over_budget(u, "a recording", NoRoom)
+            raise no_room(u, "a recording", self.data_dir, NoRoom,
+                          RECORDING_MARGIN_BYTES + 1)
         return min(max_bytes, room)
 
+    def disk_filled(self, exc: DiskFull, what: str,
+                    needed_bytes: int | None = None) -> NoRoom:
+        """The answer (507) to a write of ``what`` the disk refused under way."""
+        return disk_filled(exc, what, self.data_dir, needed_bytes)
+
     # -- writing ----------------------------------------------------------------------------
+    @contextmanager
+    def writing(self, path: Path, what: str, needed_bytes: int | None = None
+                ) -> Iterator[BinaryIO]:
+        """Write ``path`` whole or not at all: checks the room first (``needed_bytes`` if
+        known), yields the open temporary file, then checks the room taken (NoRoom, and
+        nothing kept, when the disk refuses the write or the file broke a limit)."""
+        self.require_room(what, incoming_bytes=needed_bytes or 0)
+        try:
+            with WholeFile(path) as f:
+                yield f
+        except DiskFull as exc:
+            raise self.disk_filled(exc, what, needed_bytes) from None
+        self.check_written(path, what)
+
     def save_snapshot(self, bone: Bone, name: str | None, session_id: int,
                       generation: int | None) -> dict:
         """Save ``bone`` (session ``session_id``'s, of bone ``generation``) as snapshot
         ``name`` (None: one named after the session, version and time). Conflict if it
-        exists; NoRoom over the budget."""
+        exists; NoRoom when it does not fit (the budget, the disk)."""
         if name is None:
             name = (f"session-{session_id}-v{bone.grid.version}-"
                     f"{time.strftime('%Y%m%d-%H%M%S')}")
@@ -302,14 +274,13 @@ class Storage:
             raise exc.as_api_error() from None
         if path.exists():
             raise Conflict(f"snapshot {name!r} exists")
-        self.require_room("a snapshot")
-        save_bone(bone, path, generation=generation)
-        self.check_written(path, "the snapshot")
+        with self.writing(path, "the snapshot") as f:
+            write_bone(bone, f, generation)
         return snapshot_entry(path)
 
     def new_recording_dir(self, name: str) -> Path:
         """An empty folder for recording ``name`` (``.burrrec`` added if missing); Conflict
-        if it exists, NoRoom when the budget is full."""
+        if it exists, NoRoom when the budget or the disk is full."""
         path = self.recordings_dir / (name if name.endswith(RECORDING_SUFFIX)
                                       else name + RECORDING_SUFFIX)
         if path.exists():
@@ -318,13 +289,43 @@ class Storage:
         path.mkdir(parents=True)
         return path
 
-    def export_file(self, suffix: str) -> Path:
-        """A new, empty file in exports/ ending in ``suffix`` (the caller writes it, then
-        :meth:`check_written`); NoRoom when the budget is full."""
-        self.require_room("an export")
-        fd, name = tempfile.mkstemp(prefix="export-", suffix=suffix, dir=self.exports_dir)
-        os.close(fd)
-        return Path(name)
+    async def receive_upload(self, chunks: AsyncIterator[bytes], suffix: str,
+                             limit_bytes: int, declared_bytes: int | None) -> tuple[str, int]:
+        """Store an upload as it streams in, whole or not at all; returns its id and size.
+        TooLarge past ``limit_bytes`` or the budget, NoRoom when the disk has no room for it,
+        Invalid when it is empty."""
+        # Walking the data directory takes a while with many recordings: not on the event
+        # loop.
+        usage = await asyncio.to_thread(self.require_room, "the upload", TooLarge,
+                                        declared_bytes or 0)
+        upload_id = secrets.token_hex(8)
+        size = 0
+        try:
+            part = WholeFile(self.roots.uploads / (upload_id + suffix))
+            with part as f:
+                async for chunk in chunks:
+                    size += len(chunk)
+                    if size > limit_bytes:
+                        raise TooLarge(f"the upload exceeds the limit of {limit_bytes:,} bytes "
+                                       "(serve's upload_max_mb)")
+                    if not usage.fits(size):
+                        raise no_room(usage, "the upload", self.data_dir, TooLarge, size)
+                    f.write(chunk)
+                if size == 0:
+                    raise Invalid("the upload is empty")
+                await asyncio.to_thread(part.commit)  # fsync: not on the event loop
+        except DiskFull as exc:
+            raise self.disk_filled(exc, "the upload", declared_bytes) from None
+        return upload_id, size
+
+    def write_export(self, suffix: str, write: Callable[[BinaryIO], object],
+                     needed_bytes: int | None = None) -> Path:
+        """A new file in exports/ ending in ``suffix``, written by ``write(file)`` whole or
+        not at all (:meth:`writing`); the caller serves it, then deletes it."""
+        path = self.exports_dir / f"export-{secrets.token_hex(8)}{suffix}"
+        with self.writing(path, "the export", needed_bytes) as f:
+            write(f)
+        return path
 
     # -- names ------------------------------------------------------------------------------
     def upload_file(self, upload_id: str) -> Path:
@@ -453,6 +454,35 @@ class Storage:
         size = tree_bytes(path)[0]
         shutil.rmtree(path)
         return _deleted("recording", path.name, size, [], None)
+
+    def export_file(self, name: str) -> Path:
+        """The file of export ``name`` in exports/."""
+        name = plain_name(name, "export")
+        if not EXPORT_NAME.match(name):
+            raise BadName(f"export name {name!r}: letters, digits, '_', '-', '.' only, as "
+                          "GET /v1/exports lists them")
+        path = self.exports_dir / name
+        if not path.is_file():
+            raise NotFound(f"no export {name!r}")
+        return _inside(self.exports_dir, path, "export", name)
+
+    def list_exports(self) -> list[dict]:
+        """Exports being served, or left by a download that never finished: ``name``,
+        ``bytes``, ``created`` (Unix s)."""
+        out = []
+        for path in sorted(self.exports_dir.iterdir()):
+            if path.name.startswith(".") or path.is_symlink() or not path.is_file():
+                continue  # a write under way is not an export yet
+            st = path.stat()
+            out.append({"name": path.name, "bytes": st.st_size, "created": st.st_mtime})
+        return out
+
+    def delete_export(self, name: str) -> dict:
+        """Remove an export (one being downloaded goes on being sent: its file is open)."""
+        path = self.export_file(name)
+        size = path.stat().st_size
+        path.unlink(missing_ok=True)
+        return _deleted("export", path.name, size, [], None)
 
     def recording_archive(self, name: str) -> Archive:
         """Recording ``name`` as a tar archive; Conflict while a session writes it (its files

@@ -11,14 +11,17 @@ from __future__ import annotations
 
 from typing import Literal, get_args
 
+from ..whole_files import is_disk_full
+
 #: What went wrong, from the caller's side:
 #:
 #: - ``invalid``: the command's arguments do not fit (a bad bone, parameters a burr rejects);
 #: - ``not_found``: it names a session the loop does not have;
 #: - ``conflict``: it would add what is already there (a session id in use);
+#: - ``no_room``: a file it writes did not fit on the disk (ENOSPC, EDQUOT: a recording's);
 #: - ``unavailable``: the loop is not running, stopped answering or exited;
 #: - ``internal``: anything else (a bug: the message names the exception's type).
-Kind = Literal["invalid", "not_found", "conflict", "unavailable", "internal"]
+Kind = Literal["invalid", "not_found", "conflict", "no_room", "unavailable", "internal"]
 KINDS: tuple[str, ...] = get_args(Kind)
 
 
@@ -58,7 +61,8 @@ def classify(exc: BaseException) -> CommandError:
     ``KeyError`` (a session id the loop lacks) is ``not_found`` with the key's text unquoted;
     :class:`SessionExists` is ``conflict``; ``ValueError`` and ``TypeError`` (bad arguments,
     including every bone-file and burr error, which derive from ``ValueError``) are
-    ``invalid``; a :class:`CommandError` keeps its own kind; anything else is ``internal``.
+    ``invalid``; a write the disk had no room for is ``no_room``; a :class:`CommandError`
+    keeps its own kind; anything else is ``internal``.
     """
     if isinstance(exc, CommandError):
         return exc
@@ -69,4 +73,6 @@ def classify(exc: BaseException) -> CommandError:
         return CommandError("conflict", str(exc))
     if isinstance(exc, (ValueError, TypeError)):
         return CommandError("invalid", str(exc))
+    if is_disk_full(exc):
+        return CommandError("no_room", f"the disk is full: {exc}")
     return CommandError("internal", f"{type(exc).__name__}: {exc}")

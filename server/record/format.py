@@ -38,6 +38,7 @@ import numpy as np
 from ..bone.bricks import BRICK
 from ..bone.shaft import N_SHAFT
 from ..model.kernels import N_OUT
+from ..whole_files import WholeFile, write_whole
 
 FORMAT_NAME = "burrforce-recording"
 FORMAT_VERSION = 1
@@ -114,14 +115,15 @@ def chunk_header(n_rows: int) -> bytes:
 
 
 def write_json(path: Path, value: object) -> None:
-    """Write JSON whole or not at all (beside the target, then renamed)."""
-    tmp = path.with_name(path.name + PART_SUFFIX)
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(value, f, indent=2, allow_nan=False, default=_json_default)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """Write JSON whole or not at all (``whole_files``: a full disk raises ``DiskFull`` and
+    leaves nothing)."""
+    write_whole(path, json_bytes(value))
+
+
+def json_bytes(value: object) -> bytes:
+    """``value`` as the recording's JSON files hold it (indented, no NaN, a final newline)."""
+    return (json.dumps(value, indent=2, allow_nan=False, default=_json_default)
+            + "\n").encode("utf-8")
 
 
 def _json_default(value: object) -> object:
@@ -312,8 +314,9 @@ def write_start_patch(folder: Path, grid, since_version: int) -> tuple[int, int]
         block = grid.swept[bi * BRICK:(bi + 1) * BRICK, bj * BRICK:(bj + 1) * BRICK,
                            bk * BRICK:(bk + 1) * BRICK]
         swept[n, :block.shape[0], :block.shape[1], :block.shape[2]] = block
-    np.savez(Path(folder) / PATCH_NAME, bricks=bricks.astype(np.int32), swept=swept,
-             version=np.int64(grid.version))
+    with WholeFile(Path(folder) / PATCH_NAME) as f:
+        np.savez(f, bricks=bricks.astype(np.int32), swept=swept,
+                 version=np.int64(grid.version))
     return len(bricks), int(grid.version)
 
 

@@ -5,7 +5,10 @@ of a preallocated chunk (one ``struct.pack_into``: 2–4 µs warm) and returns; 
 to the writer thread through a queue and recording continues into a spare chunk. Nothing in
 ``record`` writes a file, allocates an array or waits: when the writer falls behind (no spare
 chunk left) or ``max_bytes`` is reached, recording stops and later ticks are counted as
-dropped.
+dropped. When the disk fills up under it, the chunk being written keeps the rows that still
+fit, recording stops (``stopped_reason`` says so) and :meth:`Recorder.close` still writes the
+summary, in room held for it from the start (``SUMMARY_RESERVE_BYTES``): the recording ends
+readable and complete with what it wrote.
 
 Typical use, between two ticks in the loop's thread (the snapshot must be the bone the first
 recorded tick carves)::
@@ -20,7 +23,6 @@ from __future__ import annotations
 import collections
 import datetime as _dt
 import math
-import os
 import queue
 import shutil
 import struct
@@ -32,6 +34,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from ..whole_files import DiskFull, WholeFile, reserve, write_reserved
 from .format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -46,6 +49,7 @@ from .format import (
     SUMMARY_NAME,
     chunk_header,
     chunk_name,
+    json_bytes,
     json_float,
     recording_path,
     write_json,
@@ -72,6 +76,14 @@ class Session(Protocol):
     recorder: Recorder | None
 
 DEFAULT_MAX_BYTES = 2 << 30
+#: Room held on the disk for ``summary.json`` (about 0.5 kB) from the start, so a recording
+#: the disk filled up under still closes complete.
+SUMMARY_RESERVE_BYTES = 16 << 10
+#: The file that holds it, in the recording's folder (renamed onto the summary at close).
+SUMMARY_RESERVE_NAME = ".summary-reserve"
+#: Bytes a chunk cut short by a full disk leaves unused, for the file system's rounding to
+#: whole blocks.
+BLOCK_SLACK_BYTES = 4096
 DEFAULT_CHUNK_ROWS = 4096
 MAX_CHUNK_ROWS = 1 << 20
 #: Chunks in memory: the one being filled plus spares; the writer falls behind when every
@@ -228,6 +240,7 @@ class Recorder:
             "row_bytes": _ITEMSIZE,
         }
         write_json(path / META_NAME, full_meta)
+        reserve(path / SUMMARY_RESERVE_NAME, SUMMARY_RESERVE_BYTES)
         return cls(path, max_bytes, chunk_rows)
 
     # -- the session --------------------------------------------------------------------------
@@ -345,33 +358,45 @@ class Recorder:
                 return
             index, buf, mv, n = item
             if self._write_error is None:
-                try:
-                    self._write_chunk(index, mv, n)
-                except OSError as exc:
-                    with self._lock:
-                        self._write_error = f"writing {chunk_name(index)} failed: {exc}"
-                        self._stop(self._write_error)
-                else:
-                    with self._lock:
+                kept, error = self._write_rows(index, mv, n)
+                with self._lock:
+                    if kept:
                         self._chunks_written += 1
-                        self._rows_written += n
-                        self._bytes_written += len(chunk_header(n)) + n * _ITEMSIZE
+                        self._rows_written += kept
+                        self._bytes_written += len(chunk_header(kept)) + kept * _ITEMSIZE
+                    if error is not None:
+                        self._write_error = error
+                        self._stop(error)
             self._free.append((buf, mv))
 
-    def _write_chunk(self, index: int, mv: memoryview, n: int) -> None:
-        """Beside the final name, then renamed: a chunk file is whole or ``.part``."""
-        final = self.path / chunk_name(index)
-        part = final.with_name(final.name + PART_SUFFIX)
+    def _write_rows(self, index: int, mv: memoryview, n: int) -> tuple[int, str | None]:
+        """Write chunk ``index`` (``n`` rows); on a full disk, as many of its rows as still
+        fit. Returns (rows kept, why writing stops or None)."""
         try:
-            with open(part, "wb") as f:
-                f.write(chunk_header(n))
-                f.write(mv[:n * _ITEMSIZE])  # the GIL is released while the bytes are written
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(part, final)
-        except BaseException:
-            part.unlink(missing_ok=True)  # a failed chunk leaves nothing half-written
-            raise
+            self._write_chunk(index, mv, n)
+            return n, None
+        except DiskFull as exc:
+            free = exc.free_bytes or 0
+            fit = min(n - 1, (free - len(chunk_header(n)) - BLOCK_SLACK_BYTES) // _ITEMSIZE)
+            kept = 0
+            if fit > 0:
+                try:
+                    self._write_chunk(index, mv, fit)
+                    kept = fit
+                except OSError:
+                    kept = 0
+            return kept, (f"the disk is full: {chunk_name(index)} kept {kept} of its {n} "
+                          f"rows and recording stopped there ({exc.strerror})")
+        except OSError as exc:
+            return 0, f"writing {chunk_name(index)} failed: {exc}"
+
+    def _write_chunk(self, index: int, mv: memoryview, n: int) -> None:
+        """Beside the final name (``.part``), then renamed: a chunk file is whole, and a
+        failed one leaves nothing (``whole_files``)."""
+        final = self.path / chunk_name(index)
+        with WholeFile(final, part_name=final.name + PART_SUFFIX) as f:
+            f.write(chunk_header(n))
+            f.write(mv[:n * _ITEMSIZE])  # the GIL is released while the bytes are written
 
     # -- control ------------------------------------------------------------------------------
     def close(self) -> dict[str, Any]:
@@ -398,8 +423,12 @@ class Recorder:
         status = self.status()
         summary = {**{k: v for k, v in status.items() if k not in ("path", "closed")},
                    "end_time": _now_iso(), "resets_tracked": self._resets_tracked}
+        held = self.path / SUMMARY_RESERVE_NAME
         try:
-            write_json(self.path / SUMMARY_NAME, summary)
+            if held.is_file():  # the room held for it since the start: a full disk is fine
+                write_reserved(held, self.path / SUMMARY_NAME, json_bytes(summary))
+            else:
+                write_json(self.path / SUMMARY_NAME, summary)
         except OSError as exc:  # the chunks stay readable; the recording reads as unfinished
             status["error"] = f"cannot write {SUMMARY_NAME}: {exc}"
         return status

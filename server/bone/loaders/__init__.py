@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..bone import Bone
-from .compact import BONE_SUFFIX, save_bone
+from .compact import BONE_SUFFIX, save_bone, write_bone
 from .convert import LoadOptions, to_bone
 from .errors import BoneFileError
 from .volume import MAX_LOAD_VOXELS, Progress, RawVolume
@@ -38,6 +38,7 @@ __all__ = [
     "detect_format",
     "load_bone",
     "save_bone",
+    "write_bone",
 ]
 
 

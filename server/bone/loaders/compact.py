@@ -17,13 +17,13 @@ Any NumPy can read it (``np.load``); mostly-empty volumes compress to a few perc
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
+from ...whole_files import WholeFile
 from ..bone import Bone
 from ..grid import BoneGrid
 from ..materials import Material, MaterialTable
@@ -37,11 +37,20 @@ FORMAT_VERSION = 1
 
 def save_bone(bone: Bone, path: str | Path, generation: int | None = None) -> Path:
     """Write ``bone`` to ``path`` (``.bone.npz`` is appended if missing). The file appears
-    whole or not at all: it is written beside the target and renamed. ``generation``: the
-    server's bone generation, kept in ``meta`` (omitted when None)."""
+    whole or not at all (``whole_files.WholeFile``: a full disk raises ``DiskFull`` and
+    leaves nothing). ``generation``: the server's bone generation, kept in ``meta``
+    (omitted when None)."""
     path = Path(path)
     if not path.name.lower().endswith(BONE_SUFFIX):
         path = path.with_name(path.name + BONE_SUFFIX)
+    with WholeFile(path) as f:
+        write_bone(bone, f, generation)
+    return path
+
+
+def write_bone(bone: Bone, f: BinaryIO, generation: int | None = None) -> None:
+    """Write ``bone`` as a ``.bone.npz`` to the open binary file ``f`` (see
+    :func:`save_bone`)."""
     grid = bone.grid
     materials = [{"label": label, "name": m.name, "us_n_mm2": m.us_n_mm2, "k": m.k,
                   "forbidden": m.forbidden} for label, m in bone.materials]
@@ -49,22 +58,13 @@ def save_bone(bone: Bone, path: str | Path, generation: int | None = None) -> Pa
             "notes": bone.notes, "bone_version": grid.version}
     if generation is not None:
         meta["generation"] = int(generation)
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=".burrforce-", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(
-                f,
-                **{FORMAT_KEY: np.array([FORMAT_VERSION], dtype=np.int64)},
-                density=grid.density, labels=grid.labels, swept=grid.swept,
-                spacing_mm=grid.spacing_mm, origin_mm=grid.origin_mm,
-                direction=grid.direction,
-                materials=_json_bytes(materials), meta=_json_bytes(meta))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    np.savez_compressed(
+        f,
+        **{FORMAT_KEY: np.array([FORMAT_VERSION], dtype=np.int64)},
+        density=grid.density, labels=grid.labels, swept=grid.swept,
+        spacing_mm=grid.spacing_mm, origin_mm=grid.origin_mm,
+        direction=grid.direction,
+        materials=_json_bytes(materials), meta=_json_bytes(meta))
 
 
 def is_compact(archive: zipfile.ZipFile) -> bool:
