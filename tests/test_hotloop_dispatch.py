@@ -598,7 +598,13 @@ def test_client_rules_follow_only_verified_handshake_notices_that_match():
 
     forged = encode_notice_values(1, 100, 1, NEW_STREAM, 666, Tagger(b"attacker"))
     assert rules.accept(forged, 1) is None and rules.counters["bad_tag"] == 1
-    assert exchange(T0_NS).error == NEW_STREAM and rules.stream == STREAM  # hello, adopted
+    _, hello = rules.datagram((5.0, 0.0, 30.0), IDENTITY, 0.0, False, None, 0, T0_NS // 1000)
+    # An old NEW_STREAM replayed (a client that restarted its seqs): it echoes the seq of the
+    # hello just sent, not its timestamp (SPEC 5.2): ignored.
+    replayed = encode_notice_values(1, 100, T0_NS // 1000 - 5_000_000, NEW_STREAM, 555, TAGGER)
+    assert rules.accept(replayed, 1).stream == 555 and rules.stream == 0
+    n = rules.accept(d.handle(hello, T0_NS), 1)
+    assert n.error == NEW_STREAM and rules.stream == STREAM  # the hello's own, adopted
     late = encode_notice_values(1, 100, 1, NEW_STREAM, 777, TAGGER)  # an old hello's answer
     rules.accept(late, 1)
     assert rules.stream == STREAM
