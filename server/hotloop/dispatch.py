@@ -55,7 +55,8 @@ class Dispatcher:
     ``send_errors``, and one per error name (``malformed``, ``too_big``, ``bad_version``,
     ``bad_type``, ``unknown_session``, ``bad_tag``, ``bad_value``, ``stale``, ``duplicate``,
     ``internal``, ``wrong_stream``) for datagrams that were not processed normally;
-    ``new_stream`` counts hellos (answered or not).
+    ``new_stream`` counts hellos (answered or not); ``restoring`` datagrams held for a
+    session being restored (``restoring``).
 
     Processing order (SPEC.md 3.4): size, decode, session, tag, stream, sequence, values.
     """
@@ -63,13 +64,17 @@ class Dispatcher:
     def __init__(self) -> None:
         self.sessions: dict[int, Session] = {}
         self.counters: dict[str, int] = {"received": 0, "replied": 0, "noticed": 0,
-                                         "notices_suppressed": 0, "send_errors": 0}
+                                         "notices_suppressed": 0, "send_errors": 0,
+                                         "restoring": 0}
         for code, name in ERROR_NAMES.items():
             if code != OK:
                 self.counters[name] = 0
         #: The last datagram :meth:`handle` took was a POSE a session accepted (authentic, in
         #: its open stream, newer than the last): the loop gives its sender a socket of its own.
         self.accepted = False
+        #: Ids of sessions being put back after a restart (``HotLoopConfig.restoring``):
+        #: their datagrams go unanswered until :meth:`add` brings each back.
+        self.restoring: set[int] = set()
         self._notices = TokenBucket(NOTICE_RATE_HZ, NOTICE_BURST)
         self._internal_logged_ns = -(1 << 62)
         #: The datagram buffer (the loop receives into ``rx_view``), the decoded pose, and
@@ -82,6 +87,7 @@ class Dispatcher:
         if session.id in self.sessions:
             raise ValueError(f"session {session.id} exists")
         self.sessions[session.id] = session
+        self.restoring.discard(session.id)
 
     def warm_up(self) -> None:
         """Run a hello, a commit, a tick and an unusable pose per session through decode,
@@ -158,6 +164,9 @@ class Dispatcher:
         sid, seq, t_client, _, stream, _, _, has_tag = pose_i.tolist()
         session = self.sessions.get(sid)
         if session is None:
+            if sid in self.restoring:  # back in a moment: held, as if lost on the way
+                counters["restoring"] += 1
+                return None
             return self._reject(UNKNOWN_SESSION, (sid, seq, t_client), n, None, t_recv_ns)
         tagger = session.tagger
         if tagger is not None and (not has_tag or not tagger.verify(
