@@ -132,7 +132,8 @@ class Supervisor:
         def warm() -> None:
             if self._stop.wait(delay_s):
                 return
-            spare = HotLoopProcess(replace(self.plane.hot.config, udp_port=0, sessions=()))
+            spare = HotLoopProcess(replace(self.plane.hot.config, udp_port=0, sessions=(),
+                                            restoring=()))
             try:
                 spare.spawn_spare()
             except RuntimeError as exc:
