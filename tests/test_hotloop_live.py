@@ -448,8 +448,11 @@ def test_two_clients_saying_hello_at_once_get_streams_of_their_own_and_are_never
     lower sequence numbers then heard nothing at all while the other streamed). Each is
     offered a number of its own; then both stream at 1 kHz for 2 s, taking the session's one
     stream from each other: they never hold the same number, and neither goes unanswered
-    for long (WRONG_STREAM, NEW_STREAM or a REPLY; the handshake's notices are rate-limited,
-    100/s per session)."""
+    while the other is answered (WRONG_STREAM, NEW_STREAM or a REPLY; the handshake's
+    notices are rate-limited, 100/s per session, so the other may be answered for a few
+    ticks meanwhile; v2.0 let the whole run pass). Silence is counted in ticks in which only
+    the other was answered, not in seconds: a stall of this busy machine silences both
+    alike, and a backlog read after it counts once."""
     time.sleep(0.5)  # the session's handshake buckets, which tests before may have emptied
     up = (5.0, 0.0, 30.0)  # far above the bone: nothing is cut
     with (BurrClient(*server.address, session=KEYED, key=KEY, first_seq=100_000) as a,
@@ -464,29 +467,31 @@ def test_two_clients_saying_hello_at_once_get_streams_of_their_own_and_are_never
         adopted = [{a.rules.stream}, {b.rules.stream}]
         answered = [0, 0]
         replies = [0, 0]
-        longest_s = [0.0, 0.0]
+        # Per client: ticks in a row in which only the other was answered, and the most.
+        unheard = [0, 0]
+        most_unheard = [0, 0]
         t0 = time.monotonic()
-        last = [t0, t0]
         for k in range(2000):
             time.sleep(max(0.0, t0 + k * 1e-3 - time.monotonic()))
             for c in clients:
                 c.send(up)
+            heard = [0, 0]
             for i, c in enumerate(clients):
                 while (m := c.receive(0.0)) is not None:
-                    now = time.monotonic()
-                    longest_s[i] = max(longest_s[i], now - last[i])
-                    last[i] = now
-                    answered[i] += 1
+                    heard[i] += 1
                     replies[i] += isinstance(m, Result)
                     if c.rules.stream:
                         adopted[i].add(c.rules.stream)
                 assert a.rules.stream != b.rules.stream or a.rules.stream == 0
-        end = time.monotonic()
-        longest_s = [max(x, end - t) for x, t in zip(longest_s, last, strict=True)]
+            for i in (0, 1):
+                answered[i] += heard[i]
+                unheard[i] = 0 if heard[i] else unheard[i] + (heard[1 - i] > 0)
+                most_unheard[i] = max(most_unheard[i], unheard[i])
     print(f"two clients: answered {answered}, replies {replies}, streams "
-          f"{[len(s) for s in adopted]}, longest silence {[round(x, 4) for x in longest_s]} s")
+          f"{[len(s) for s in adopted]}, most ticks in a row only the other was answered "
+          f"{most_unheard}")
     assert not adopted[0] & adopted[1], adopted
-    assert min(replies) > 0 and max(longest_s) < 0.25, (replies, longest_s)
+    assert min(replies) > 0 and max(most_unheard) < 100, (replies, most_unheard)
 
 
 def _closed_udp_port() -> int:
