@@ -35,6 +35,8 @@ HANDSHAKE_NOTICES = (NEW_STREAM, WRONG_STREAM)
 #: How often :meth:`BurrClient.exchange` sends one pose again through the handshake
 #: (WRONG_STREAM → hello → NEW_STREAM → the pose: two; one spare for a race).
 MAX_RESENDS = 3
+#: Hellos remembered (seq → t_client_us) to match a NEW_STREAM against: a second at 1 kHz.
+HELLOS_KEPT = 1024
 
 
 class Result(NamedTuple):
@@ -138,9 +140,11 @@ class SessionRules:
         self.newest: int | None = None
         self.stream = HELLO_STREAM
         self.give_way = give_way
-        #: The seq of the first hello since ``stream`` became 0 (None: none sent yet). Every
-        #: POSE sent since went out as a hello, so the hellos are [this, self.seq).
-        self._hello_from: int | None = None
+        #: The hellos sent since ``stream`` became 0 (the last HELLOS_KEPT): seq →
+        #: t_client_us. A NEW_STREAM is taken only if it echoes one of them, seq and
+        #: timestamp: an old one replayed to a client that restarted its seqs echoes a seq it
+        #: may have sent again, never with the same timestamp (SPEC.md 5.2).
+        self._hellos: dict[int, int] = {}
         self.counters = {"sent": 0, "received": 0, "bad_tag": 0, "malformed": 0, "stale": 0,
                          "notices": 0, "timeouts": 0, "foreign": 0, "hellos": 0,
                          "streams": 0, "wrong_stream": 0}
@@ -158,32 +162,32 @@ class SessionRules:
             raise StreamTaken(self.session)
         seq = self.seq
         self.seq = seq_next(seq)
+        t_us = now_us() if t_us is None else t_us
         if self.stream == HELLO_STREAM:
-            if self._hello_from is None:
-                self._hello_from = seq
+            hellos = self._hellos
+            hellos.pop(seq, None)  # re-inserted last: the dict stays oldest first
+            hellos[seq] = t_us
+            if len(hellos) > HELLOS_KEPT:
+                del hellos[next(iter(hellos))]
             self.counters["hellos"] += 1
-        pose = Pose(self.session, seq, now_us() if t_us is None else t_us,
+        pose = Pose(self.session, seq, t_us,
                     tuple(position), tuple(orientation), rpm, spindle_on,  # type: ignore[arg-type]
                     None if velocity is None else tuple(velocity), flags,  # type: ignore[arg-type]
                     self.stream)
         self.counters["sent"] += 1
         return seq, encode_pose(pose, self.tagger)
 
-    def _sent_hello(self, seq: int) -> bool:
-        """``seq`` is a hello sent since the client's stream became 0."""
-        first = self._hello_from
-        return first is not None and (seq - first) % SEQ_MODULUS < (self.seq - first) % SEQ_MODULUS
-
     def _handshake(self, notice: Notice) -> None:
         """Follow a verified NEW_STREAM or WRONG_STREAM notice."""
         if notice.error == NEW_STREAM:
             if (self.stream == HELLO_STREAM and notice.stream != HELLO_STREAM
-                    and self._sent_hello(notice.seq)):
+                    and self._hellos.get(notice.seq) == notice.t_client_us):
                 self.stream = notice.stream
-                self._hello_from = None
+                self._hellos.clear()
                 self.counters["streams"] += 1
         elif notice.stream == self.stream != HELLO_STREAM:
             self.stream = HELLO_STREAM
+            self._hellos.clear()  # answers to hellos before this stream are not for this round
             self.counters["wrong_stream"] += 1
 
     def accept(self, data: bytes, arrived_us: int) -> Result | Notice | None:

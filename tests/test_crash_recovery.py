@@ -17,9 +17,9 @@ import pytest
 from waiting import WAIT_S
 from waiting import wait_until as _wait
 
-from burrforce.client.udp import BurrClient, ServerGone
+from burrforce.client.udp import BurrClient, ServerError, ServerGone
 from burrforce.proto.codec import decode_server_message
-from burrforce.proto.messages import WRONG_STREAM, Notice
+from burrforce.proto.messages import ERROR_NAMES, UNKNOWN_SESSION, WRONG_STREAM, Notice
 from burrforce.server.api import supervisor as supervisor_module
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.journal_carve import read_log
@@ -95,6 +95,63 @@ def test_a_killed_hot_loop_comes_back_with_its_session_key_and_carving(stack):
         assert session.reader.version > before  # and it cuts on
     health = stack.plane.hot.is_alive()
     assert health
+
+
+def test_streaming_through_a_hot_loop_kill_meets_wrong_stream_once_and_no_unknown_session(
+        stack):
+    """The issue's 50-67 UNKNOWN_SESSION notices: a client streaming (``exchange`` at up to
+    1 kHz) through a ``kill -9`` of its hot loop. The new loop holds the datagrams of the
+    session being restored (no answer) until it is back; then the client hears WRONG_STREAM
+    once, says hello and streams on: ``exchange`` never raises ServerError. (Without a loop
+    at all, a datagram is lost: TimeoutError, or ServerGone for the ICMP "port unreachable".)
+    The bone is the large phantom, whose restore takes long enough to be seen."""
+    source = stack.plane.resolve("phantom:temporal", None, None)
+    session = stack.add_session(source, Parameters(), session_id=7)
+    notices: dict[int, int] = {}
+    lost: dict[str, int] = {}
+    with BurrClient(*stack.udp_address, session.id, session.key_hex) as client:
+        accept = client.rules.accept
+
+        def counting(data: bytes, arrived_us: int):
+            message = accept(data, arrived_us)
+            if isinstance(message, Notice):
+                notices[message.error] = notices.get(message.error, 0) + 1
+            return message
+
+        client.rules.accept = counting
+
+        def run(seconds: float, replies_wanted: int = 0) -> int:
+            """Exchange for ``seconds``, and on until ``replies_wanted`` replies came (a
+            restart on a busy machine may take longer; bounded by WAIT_S)."""
+            replies = 0
+            start = time.monotonic()
+            while True:
+                elapsed = time.monotonic() - start
+                if elapsed > WAIT_S or (elapsed > seconds and replies >= replies_wanted):
+                    return replies
+                try:
+                    client.exchange((20.0, 0.0, 5.0), timeout_s=0.5)
+                    replies += 1
+                except (TimeoutError, ServerGone) as exc:
+                    lost[type(exc).__name__] = lost.get(type(exc).__name__, 0) + 1
+                except ServerError as exc:  # the failure this test is about
+                    raise AssertionError(f"exchange raised {exc}; notices {notices}") from exc
+                time.sleep(0.001)
+
+        assert run(0.5) > 0
+        old_pid = stack.hot.pid
+        os.kill(old_pid, signal.SIGKILL)
+        after = run(2.0, replies_wanted=100)
+        assert stack.supervisor.restarts and stack.supervisor.state == "running"
+        assert stack.hot.pid != old_pid
+        counters = stack.hot.call("stats")["counters"]
+    print(f"through the restart: {after} replies, lost {lost}, notices "
+          f"{ {ERROR_NAMES[k]: v for k, v in notices.items()} }, new loop held "
+          f"{counters['restoring']} datagram(s), restart "
+          f"{stack.supervisor.restarts[-1].public()}")
+    assert after > 0
+    assert UNKNOWN_SESSION not in notices and counters["unknown_session"] == 0
+    assert notices.get(WRONG_STREAM, 0) <= 1 and client.counters["wrong_stream"] == 1
 
 
 def test_a_wedged_hot_loop_is_killed_and_replaced(stack, monkeypatch):

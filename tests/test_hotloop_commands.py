@@ -91,3 +91,28 @@ def test_removing_answers_whether_there_was_a_session(ctx):
     assert run_command(ctx, "remove_session", {"session_id": 1}) is False
     with pytest.raises(KeyError):
         run_command(ctx, "restart_stream", {"session_id": 1})
+
+
+def test_sessions_being_restored_are_held_until_added_or_the_restore_ends(ctx):
+    """After a restart the new loop is told which sessions come back (``restoring``): their
+    datagrams go unanswered (never UNKNOWN_SESSION) until each is added, or until
+    ``restored`` ends the wait for one that did not come back."""
+    from burrforce.proto.codec import decode_server_message, encode_pose
+    from burrforce.proto.messages import UNKNOWN_SESSION, WRONG_STREAM, Pose
+
+    d = ctx.dispatcher
+    d.restoring.update({2, 3})
+
+    def pose(sid: int) -> bytes:
+        return encode_pose(Pose(sid, 9, 9000, (5.0, 0.0, 30.0), (0.0, 0.0, 0.0, 1.0), 0.0,
+                                False, stream=1234))
+
+    assert d.handle(pose(2), 1) is None and d.handle(pose(3), 2) is None
+    assert decode_server_message(d.handle(pose(4), 3)).error == UNKNOWN_SESSION
+    assert (d.counters["restoring"], d.counters["unknown_session"]) == (2, 1)
+    run_command(ctx, "add_session", {"spec": SessionSpec(2, "phantom:workpiece", 0.5, None)})
+    assert decode_server_message(d.handle(pose(2), 4)).error == WRONG_STREAM  # back
+    assert d.handle(pose(3), 5) is None
+    run_command(ctx, "restored", {})
+    assert decode_server_message(d.handle(pose(3), 6)).error == UNKNOWN_SESSION
+    assert d.restoring == set()

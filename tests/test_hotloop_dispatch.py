@@ -42,7 +42,7 @@ from burrforce.proto.tag import Tagger
 from burrforce.server.bone import BoneEngine, workpiece_block
 from burrforce.server.hotloop import Dispatcher, Session, SessionConfig
 from burrforce.server.hotloop.dispatch import NOTICE_BURST
-from burrforce.server.hotloop.session import STREAM_NOTICE_BURST
+from burrforce.server.hotloop.session import MAX_OFFERS, STREAM_NOTICE_BURST
 from burrforce.server.model import CuttingModel, CuttingParams
 from burrforce.server.model.cases import CuttingCase
 
@@ -79,12 +79,12 @@ def make(voxel_mm: float = 0.25, frame: str = "si_mm", key: bytes | None = KEY,
 
 def send(d: Dispatcher, seq: int, position, *, t_us: int | None = None, key=KEY,
          orientation=(0.0, 0.0, 0.0, 1.0), rpm=60_000.0, on=True, velocity=None, flags=0,
-         now_ns: int | None = None, session: int = 1, stream: int = STREAM):
+         now_ns: int | None = None, session: int = 1, stream: int = STREAM, peer=None):
     t_us = seq * 1000 if t_us is None else t_us
     pose = Pose(session, seq, t_us, tuple(position), tuple(orientation), rpm, on, velocity,
                 flags, stream)
     data = encode_pose(pose, Tagger(key) if key is not None else None)
-    out = d.handle(data, T0_NS + t_us * 1000 if now_ns is None else now_ns)
+    out = d.handle(data, T0_NS + t_us * 1000 if now_ns is None else now_ns, peer)
     return None if out is None else decode_server_message(out)
 
 
@@ -274,6 +274,58 @@ def test_stream_notices_have_a_bucket_per_session():
     # 10 ms later the bucket holds one token again (100/s).
     assert send(d, 3, (5.0, 0.0, 1.5), stream=0, now_ns=T0_NS + 10**7) is not None
     assert s.counters["hellos"] == 102 and s.offer == STREAM
+
+
+def test_two_clients_saying_hello_at_once_get_streams_of_their_own():
+    """The issue's collision (SPEC 5.2): two clients (two source addresses) say hello before
+    either uses its number. Each is offered a number of its own, only its own address may
+    open it, and a client whose stream is taken, or who uses one not its own, hears
+    WRONG_STREAM: never silence, whatever its sequence numbers."""
+    d, s = make(open_stream=False)
+    a, b = ("10.0.0.1", 40000), ("10.0.0.2", 40000)
+    up = (5.0, 0.0, 30.0)
+    na = send(d, 100, up, stream=0, peer=a)
+    nb = send(d, 1, up, stream=0, peer=b)
+    assert (na.error, nb.error) == (NEW_STREAM, NEW_STREAM) and na.stream != nb.stream
+    assert send(d, 101, up, stream=0, peer=a).stream == na.stream  # idempotent per source
+    n = send(d, 2, up, stream=na.stream, peer=b)  # A's number from B's address
+    assert (n.error, n.stream) == (WRONG_STREAM, na.stream) and s.stream == 0
+    assert isinstance(send(d, 102, up, stream=na.stream, peer=a), Reply)
+    assert (s.stream, s.stream_peer, s.offers) == (na.stream, a, {})
+    # A's commit withdrew B's offer: B hears so, asks again and takes the stream.
+    n = send(d, 3, up, stream=nb.stream, peer=b)
+    assert (n.error, n.stream) == (WRONG_STREAM, nb.stream)
+    nb2 = send(d, 4, up, stream=0, peer=b)
+    assert nb2.stream not in (na.stream, nb.stream)
+    assert isinstance(send(d, 5, up, stream=nb2.stream, peer=b), Reply)
+    n = send(d, 103, up, stream=na.stream, peer=a)
+    assert (n.error, n.stream) == (WRONG_STREAM, na.stream)
+    # B's open stream used from A's address (a number A adopted wrongly, or a replay from
+    # elsewhere), with a seq above, equal to or below B's: WRONG_STREAM, never ticked.
+    accepted = s.counters["accepted"]
+    for seq in (1000, 5, 2):
+        n = send(d, seq, up, stream=nb2.stream, peer=a)
+        assert (n.error, n.stream) == (WRONG_STREAM, nb2.stream)
+    assert s.counters["accepted"] == accepted and s.stream_peer == b
+    assert isinstance(send(d, 6, up, stream=nb2.stream, peer=b), Reply)  # B streams on
+
+
+def test_offers_are_bounded_and_hellos_beyond_the_rate_use_up_no_numbers():
+    d, s = make(open_stream=False)
+    up = (5.0, 0.0, 30.0)
+    answers = [send(d, 1, up, stream=0, peer=("10.0.0.1", port), now_ns=T0_NS)
+               for port in range(100)]  # a hundred sources at one instant
+    offered = [n.stream for n in answers if n is not None]
+    burst = int(STREAM_NOTICE_BURST)
+    assert offered == list(range(STREAM, STREAM + burst))
+    assert s.next_stream == STREAM + burst
+    # The latest MAX_OFFERS askers hold offers; an older one's was withdrawn: it hears so.
+    assert len(s.offers) == MAX_OFFERS and s.offer == offered[-1]
+    later = T0_NS + 10**9
+    n = send(d, 2, up, stream=offered[0], peer=("10.0.0.1", 0), now_ns=later)
+    assert (n.error, n.stream) == (WRONG_STREAM, offered[0])
+    last = ("10.0.0.1", burst - 1)
+    assert isinstance(send(d, 2, up, stream=offered[-1], peer=last, now_ns=later), Reply)
 
 
 def test_a_v1_datagram_gets_a_bad_version_notice_in_v1_shape():
@@ -546,7 +598,13 @@ def test_client_rules_follow_only_verified_handshake_notices_that_match():
 
     forged = encode_notice_values(1, 100, 1, NEW_STREAM, 666, Tagger(b"attacker"))
     assert rules.accept(forged, 1) is None and rules.counters["bad_tag"] == 1
-    assert exchange(T0_NS).error == NEW_STREAM and rules.stream == STREAM  # hello, adopted
+    _, hello = rules.datagram((5.0, 0.0, 30.0), IDENTITY, 0.0, False, None, 0, T0_NS // 1000)
+    # An old NEW_STREAM replayed (a client that restarted its seqs): it echoes the seq of the
+    # hello just sent, not its timestamp (SPEC 5.2): ignored.
+    replayed = encode_notice_values(1, 100, T0_NS // 1000 - 5_000_000, NEW_STREAM, 555, TAGGER)
+    assert rules.accept(replayed, 1).stream == 555 and rules.stream == 0
+    n = rules.accept(d.handle(hello, T0_NS), 1)
+    assert n.error == NEW_STREAM and rules.stream == STREAM  # the hello's own, adopted
     late = encode_notice_values(1, 100, 1, NEW_STREAM, 777, TAGGER)  # an old hello's answer
     rules.accept(late, 1)
     assert rules.stream == STREAM

@@ -18,6 +18,7 @@ import pytest
 from burrforce.client import (
     AsyncBurrClient,
     BurrClient,
+    Result,
     ServerError,
     ServerGone,
     StreamTaken,
@@ -365,15 +366,21 @@ def _assert_not_ticked(answers: list[object], stats_before: dict, stats_after: d
 def test_replays_after_idle_and_after_restart_stream_are_never_answered(server):
     """The issue's fault, replayed on a real loop: a captured keyed stream sent again after
     more than a second of idle (v1 restarted the stream and cut with it), then again after a
-    REST restart-stream: never a REPLY, never a tick."""
+    REST restart-stream: never a REPLY, never a tick. (Sent from another address than the
+    stream's, the open stream's POSEs are refused WRONG_STREAM; from its own, they would be
+    stale: ``test_hotloop_dispatch``.)"""
     captured = _capture_keyed_stream(server.address, KEYED, 40)
     time.sleep(1.2)  # past v1's idle restart
     before = server.stats()["sessions"][KEYED]
     answers = _replay(server, captured)
     after = server.stats()["sessions"][KEYED]
     _assert_not_ticked(answers, before, after)
-    assert after["stale"] + after["duplicate"] - before["stale"] - before["duplicate"] == 40
-    assert [a.error for a in answers] == [NEW_STREAM]  # the hello: a notice, nothing ticked
+    assert after["wrong_stream"] - before["wrong_stream"] == 40
+    # The hello: a notice (an offer of its own), nothing ticked; the POSEs: WRONG_STREAM, as
+    # many as the session's bucket answers.
+    assert [a.error for a in answers[:1]] == [NEW_STREAM]
+    assert {a.error for a in answers[1:]} == {WRONG_STREAM}
+    assert after["stream"] == before["stream"]  # the client's stream is untouched
     server.call("restart_stream", session_id=KEYED)
     answers = _replay(server, captured)
     final = server.stats()["sessions"][KEYED]
@@ -432,6 +439,59 @@ def test_a_client_giving_way_stops_when_another_takes_the_stream(server):
             assert rude.exchange(above).reply.error == OK
             assert person.exchange(above).reply.error == OK  # after taking it back
             assert person.counters["wrong_stream"] == 1 and person.counters["streams"] == 2
+
+
+def test_two_clients_saying_hello_at_once_get_streams_of_their_own_and_are_never_silent(
+        server):
+    """The issue's collision (SPEC 5.2), on a real loop over UDP: two clients say hello
+    before either has used its number (v2.0 gave both the same one, and the client with the
+    lower sequence numbers then heard nothing at all while the other streamed). Each is
+    offered a number of its own; then both stream at 1 kHz for 2 s, taking the session's one
+    stream from each other: they never hold the same number, and neither goes unanswered
+    while the other is answered (WRONG_STREAM, NEW_STREAM or a REPLY; the handshake's
+    notices are rate-limited, 100/s per session, so the other may be answered for a few
+    ticks meanwhile; v2.0 let the whole run pass). Silence is counted in ticks in which only
+    the other was answered, not in seconds: a stall of this busy machine silences both
+    alike, and a backlog read after it counts once."""
+    time.sleep(0.5)  # the session's handshake buckets, which tests before may have emptied
+    up = (5.0, 0.0, 30.0)  # far above the bone: nothing is cut
+    with (BurrClient(*server.address, session=KEYED, key=KEY, first_seq=100_000) as a,
+          BurrClient(*server.address, session=KEYED, key=KEY, first_seq=1) as b):
+        clients = (a, b)
+        for c in clients:  # both hellos out before either answer is read
+            c.send(up)
+        offers = [c.receive(2.0) for c in clients]
+        assert all(isinstance(n, Notice) and n.error == NEW_STREAM for n in offers), offers
+        assert offers[0].stream != offers[1].stream
+        assert (a.rules.stream, b.rules.stream) == (offers[0].stream, offers[1].stream)
+        adopted = [{a.rules.stream}, {b.rules.stream}]
+        answered = [0, 0]
+        replies = [0, 0]
+        # Per client: ticks in a row in which only the other was answered, and the most.
+        unheard = [0, 0]
+        most_unheard = [0, 0]
+        t0 = time.monotonic()
+        for k in range(2000):
+            time.sleep(max(0.0, t0 + k * 1e-3 - time.monotonic()))
+            for c in clients:
+                c.send(up)
+            heard = [0, 0]
+            for i, c in enumerate(clients):
+                while (m := c.receive(0.0)) is not None:
+                    heard[i] += 1
+                    replies[i] += isinstance(m, Result)
+                    if c.rules.stream:
+                        adopted[i].add(c.rules.stream)
+                assert a.rules.stream != b.rules.stream or a.rules.stream == 0
+            for i in (0, 1):
+                answered[i] += heard[i]
+                unheard[i] = 0 if heard[i] else unheard[i] + (heard[1 - i] > 0)
+                most_unheard[i] = max(most_unheard[i], unheard[i])
+    print(f"two clients: answered {answered}, replies {replies}, streams "
+          f"{[len(s) for s in adopted]}, most ticks in a row only the other was answered "
+          f"{most_unheard}")
+    assert not adopted[0] & adopted[1], adopted
+    assert min(replies) > 0 and max(most_unheard) < 100, (replies, most_unheard)
 
 
 def _closed_udp_port() -> int:
@@ -500,7 +560,8 @@ def test_a_restarted_loop_never_answers_the_old_streams_replays():
         assert after["wrong_stream"] == 20 and after["stream"] == 0
         with BurrClient(*new.address, session=KEYED, key=KEY, timeout_s=2.0) as c:
             r = [c.exchange((10.0 + 0.003 * k, 2.0, 1.5), rpm=60_000) for k in range(30)]
-            assert c.rules.stream == base
+            # The replayed hello's address holds the first number: the client gets its own.
+            assert c.rules.stream == base + 1
         assert r[0].reply.status & STATUS_STALE and r[-1].reply.status & STATUS_CUTTING
 
 

@@ -143,6 +143,27 @@ def test_vectors_follow_the_spec_rules():
             assert (fields.get("stream", 0) != 0) == (fields["error"] in known[1:])
 
 
+def test_the_handshake_vectors_follow_the_client_rule():
+    """SPEC 5.2's client rule on the vectors: having sent pose_hello, a client ignores
+    notice_new_stream_replayed (its seq, not its t_client_us) and takes notice_new_stream
+    (both); then notice_wrong_stream, about the stream it took, sends it back to hello."""
+    from burrforce.client.udp import SessionRules
+
+    v = {vec["name"]: vec for vec in VECTORS}
+    hello = v["pose_hello"]["fields"]
+    rules = SessionRules(hello["session"], KEY, hello["seq"])
+    _, sent = rules.datagram(hello["position"], hello["orientation"], hello["rpm"],
+                             hello["spindle_on"], hello["velocity"], hello["flags"],
+                             hello["t_client_us"])
+    assert sent.hex() == v["pose_hello"]["hex"]
+    replayed = rules.accept(bytes.fromhex(v["notice_new_stream_replayed"]["hex"]), 0)
+    assert replayed.error == NEW_STREAM and rules.stream == 0  # authentic, and ignored
+    rules.accept(bytes.fromhex(v["notice_new_stream"]["hex"]), 0)
+    assert rules.stream == v["notice_new_stream"]["fields"]["stream"]
+    rules.accept(bytes.fromhex(v["notice_wrong_stream"]["hex"]), 0)
+    assert rules.stream == 0 and rules.counters["wrong_stream"] == 1
+
+
 @pytest.mark.parametrize("vec", V2_VECTORS, ids=vector_id)
 def test_vector_encodes_to_its_bytes(vec):
     message = message_from_fields(vec["type"], vec["fields"])

@@ -146,6 +146,14 @@ CASES: tuple[Case, ...] = (
          "its next POSEs.",
          Notice(session=7, seq=1, t_client_us=999_000, error=NEW_STREAM, stream=0x12345678),
          True),
+    Case("notice_new_stream_replayed",
+         "NOTICE, tagged: a NEW_STREAM (11) echoing pose_hello's seq (1) but not its "
+         "t_client_us: an old answer replayed to a client that started its seqs again at 1. "
+         "Authentic, about the right session, yet a client that sent pose_hello MUST ignore "
+         "it: it takes a NEW_STREAM only if both seq and t_client_us echo a hello it sent "
+         "since it lost its stream (SPEC.md 5.2), and notice_new_stream does.",
+         Notice(session=7, seq=1, t_client_us=500_000, error=NEW_STREAM, stream=0x11223344),
+         True),
     Case("notice_wrong_stream",
          "NOTICE, tagged: error WRONG_STREAM (12): the POSE's stream 305419896 is not (or no "
          "longer) open; the client sends a hello.",

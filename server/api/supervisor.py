@@ -5,8 +5,10 @@ can be killed (OOM killer, ``kill -9``, a crash in native code) or wedge (a tick
 ends). The supervisor watches its exit status and its heartbeat; when either fails it says so
 (console, log, health, metrics), kills what is left, starts a new loop on the same UDP port and
 puts every session back with its id, key, parameters and carved bone
-(``ControlPlane.rebuild``). Engines see their stream refused once (WRONG_STREAM), say hello
-again and go on with the same key.
+(``ControlPlane.rebuild``). The new loop is told which sessions are coming back before its
+port opens: their datagrams go unanswered until each is back, never UNKNOWN_SESSION. Engines
+then see their stream refused once (WRONG_STREAM), say hello again and go on with the same
+key.
 
 With a pool (``serve --workers``) each worker is watched and replaced on its own: a crash of
 worker 2 rebuilds worker 2's sessions on worker 2's port and touches no other. One warm spare
@@ -29,6 +31,7 @@ from dataclasses import dataclass, replace
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from ..hotloop import HotLoopProcess
+from ..hotloop.errors import CommandError
 from .daemon import start_daemon, stop_daemon
 from .metrics import LoopStats
 from .plane import ControlPlane
@@ -129,7 +132,8 @@ class Supervisor:
         def warm() -> None:
             if self._stop.wait(delay_s):
                 return
-            spare = HotLoopProcess(replace(self.plane.hot.config, udp_port=0, sessions=()))
+            spare = HotLoopProcess(replace(self.plane.hot.config, udp_port=0, sessions=(),
+                                            restoring=()))
             try:
                 spare.spawn_spare()
             except RuntimeError as exc:
@@ -143,9 +147,11 @@ class Supervisor:
 
         threading.Thread(target=warm, name="burrforce-spare", daemon=True).start()
 
-    def _take_spare(self, address: tuple[str, int]) -> HotLoopProcess:
+    def _take_spare(self, address: tuple[str, int],
+                    restoring: tuple[int, ...] = ()) -> HotLoopProcess:
         # Every worker wakes ahead, and is scheduled, alike.
-        like = replace(self.plane.hot.config, host=address[0], udp_port=address[1], sessions=())
+        like = replace(self.plane.hot.config, host=address[0], udp_port=address[1], sessions=(),
+                       restoring=restoring)
         with self._spare_lock:
             spare, self.spare = self.spare, None
         if spare is not None and spare.is_alive() and spare.spare:
@@ -198,15 +204,15 @@ class Supervisor:
         t0 = time.monotonic()
         name = "HOT LOOP" if len(plane.workers) == 1 else f"HOT LOOP worker {index}"
         mine = set(plane.worker_sessions(index))
-        self._tell(f"{name} {reason}: restarting it and its "
-                   f"{sum(s.in_loop for s in plane.sessions.values() if s.id in mine)} "
-                   "session(s)", logging.ERROR)
+        restoring = tuple(s.id for s in plane.sessions.values() if s.id in mine and s.in_loop)
+        self._tell(f"{name} {reason}: restarting it and its {len(restoring)} session(s)",
+                   logging.ERROR)
         streams = self.stats.next_streams()
         address = old.address or (old.config.host, old.config.udp_port)
         old.kill()
         delay = RETRY_S
         while not self._stop.is_set():
-            new = self._take_spare(address)
+            new = self._take_spare(address, restoring)
             try:
                 new.start()
             except RuntimeError as exc:
@@ -223,7 +229,10 @@ class Supervisor:
                 delay *= 2
                 continue
             self.failed_starts = 0
-            record.notes = tuple(plane.rebuild(new, streams, index))
+            try:
+                record.notes = tuple(plane.rebuild(new, streams, index))
+            finally:
+                _end_restore(new)
             # Numbers from the old loop are not the new one's.
             mine = plane.worker_sessions(index)
             self.stats.forget_sessions(mine if len(plane.workers) > 1 else None)
@@ -268,6 +277,15 @@ class Supervisor:
                                          "From noticing the last failure to sessions back")
             recovery.add_metric([], self.restarts[-1].recovery_s)
             yield recovery
+
+
+def _end_restore(hot: HotLoopProcess) -> None:
+    """Tell a new loop its restore is over: a session that did not come back is answered
+    UNKNOWN_SESSION from now on (if the loop died meanwhile, the next restart says it)."""
+    try:
+        hot.call("restored")
+    except CommandError:
+        pass
 
 
 def _describe_exit(code: int | None) -> str:

@@ -74,6 +74,8 @@ def child_main(conn: Connection, beat: socket.socket | None = None) -> None:
         for spec in config.sessions:
             dispatcher.add(build_session(spec))
         dispatcher.warm_up()
+        # Before the port opens: no datagram of a session on its way back is refused.
+        dispatcher.restoring.update(config.restoring)
         for session in dispatcher.sessions.values():
             session.publish_telemetry()
         # Every session may be switched to the coupled output later: no first coupled

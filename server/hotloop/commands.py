@@ -260,7 +260,15 @@ def _recording_status(ctx: CommandContext, kwargs: dict) -> object:
 
 def _remove_session(ctx: CommandContext, kwargs: dict) -> bool:
     with ctx.lock:
+        ctx.dispatcher.restoring.discard(kwargs["session_id"])
         return ctx.dispatcher.sessions.pop(kwargs["session_id"], None) is not None
+
+
+def _restored(ctx: CommandContext, kwargs: dict) -> None:
+    """The restore after a restart is over: a session not added back by now is gone, and
+    its datagrams are answered UNKNOWN_SESSION."""
+    with ctx.lock:
+        ctx.dispatcher.restoring.clear()
 
 
 def _restart_stream(ctx: CommandContext, kwargs: dict) -> None:
@@ -282,6 +290,7 @@ COMMANDS: dict[str, Handler] = {
     "recording_status": _recording_status,
     "remove_session": _remove_session,
     "restart_stream": _restart_stream,
+    "restored": _restored,
 }
 
 

@@ -55,7 +55,8 @@ class Dispatcher:
     ``send_errors``, and one per error name (``malformed``, ``too_big``, ``bad_version``,
     ``bad_type``, ``unknown_session``, ``bad_tag``, ``bad_value``, ``stale``, ``duplicate``,
     ``internal``, ``wrong_stream``) for datagrams that were not processed normally;
-    ``new_stream`` counts hellos (answered or not).
+    ``new_stream`` counts hellos (answered or not); ``restoring`` datagrams held for a
+    session being restored (``restoring``).
 
     Processing order (SPEC.md 3.4): size, decode, session, tag, stream, sequence, values.
     """
@@ -63,13 +64,17 @@ class Dispatcher:
     def __init__(self) -> None:
         self.sessions: dict[int, Session] = {}
         self.counters: dict[str, int] = {"received": 0, "replied": 0, "noticed": 0,
-                                         "notices_suppressed": 0, "send_errors": 0}
+                                         "notices_suppressed": 0, "send_errors": 0,
+                                         "restoring": 0}
         for code, name in ERROR_NAMES.items():
             if code != OK:
                 self.counters[name] = 0
         #: The last datagram :meth:`handle` took was a POSE a session accepted (authentic, in
         #: its open stream, newer than the last): the loop gives its sender a socket of its own.
         self.accepted = False
+        #: Ids of sessions being put back after a restart (``HotLoopConfig.restoring``):
+        #: their datagrams go unanswered until :meth:`add` brings each back.
+        self.restoring: set[int] = set()
         self._notices = TokenBucket(NOTICE_RATE_HZ, NOTICE_BURST)
         self._internal_logged_ns = -(1 << 62)
         #: The datagram buffer (the loop receives into ``rx_view``), the decoded pose, and
@@ -82,6 +87,7 @@ class Dispatcher:
         if session.id in self.sessions:
             raise ValueError(f"session {session.id} exists")
         self.sessions[session.id] = session
+        self.restoring.discard(session.id)
 
     def warm_up(self) -> None:
         """Run a hello, a commit, a tick and an unusable pose per session through decode,
@@ -121,22 +127,25 @@ class Dispatcher:
         for name in self.counters:
             self.counters[name] = 0
 
-    def handle(self, data: bytes, t_recv_ns: int) -> bytes | None:
-        """The answer to ``data`` (received at ``t_recv_ns``, monotonic), or None."""
+    def handle(self, data: bytes, t_recv_ns: int, peer: object = None) -> bytes | None:
+        """The answer to ``data`` (received at ``t_recv_ns``, monotonic, from ``peer``), or
+        None."""
         n = len(data)
         if n <= RX_BYTES:
             self.rx_view[:n] = data
-        out = self.handle_received(n, t_recv_ns, data)
+        out = self.handle_received(n, t_recv_ns, data, peer)
         return bytes(out) if type(out) is memoryview else out
 
-    def handle_received(self, n: int, t_recv_ns: int,
-                        data: bytes | None = None) -> memoryview | bytes | None:
+    def handle_received(self, n: int, t_recv_ns: int, data: bytes | None = None,
+                        peer: object = None) -> memoryview | bytes | None:
         """The answer to the ``n`` bytes in ``rx`` (received at ``t_recv_ns``), or None. The
         answer may be a slice of the reply buffer: send it before the next datagram.
 
         ``data``: the datagram as bytes if the caller has it (else it is copied out of ``rx``
         for the general decoder when it is not a canonical POSE); required if ``n`` >
-        RX_BYTES."""
+        RX_BYTES. ``peer``: the sender's address. A stream is offered to one address and
+        ticked only for the address that opened it (SPEC.md 5.2): the same number never
+        serves two clients."""
         counters = self.counters
         counters["received"] += 1
         self.accepted = False
@@ -155,15 +164,20 @@ class Dispatcher:
         sid, seq, t_client, _, stream, _, _, has_tag = pose_i.tolist()
         session = self.sessions.get(sid)
         if session is None:
+            if sid in self.restoring:  # back in a moment: held, as if lost on the way
+                counters["restoring"] += 1
+                return None
             return self._reject(UNKNOWN_SESSION, (sid, seq, t_client), n, None, t_recv_ns)
         tagger = session.tagger
         if tagger is not None and (not has_tag or not tagger.verify(
                 self.rx_view[:n] if data is None else data)):
             return self._reject(BAD_TAG, (sid, seq, t_client), n, session, t_recv_ns)
-        if stream == 0 or stream != session.stream:  # 0 is never an open stream
-            if stream == 0 or stream != session.offer:
-                return self._handshake(session, seq, t_client, stream, n, t_recv_ns)
-            session.commit()
+        # 0 is never an open stream; a stream's POSE from another address is another
+        # client's (or a replay from elsewhere): refused, so that client hears it.
+        if stream == 0 or stream != session.stream or peer != session.stream_peer:
+            if not session.offered(stream, peer):
+                return self._handshake(session, seq, t_client, stream, n, t_recv_ns, peer)
+            session.commit(peer)
         order = session.admit(seq)
         if order != OK:  # stale and duplicate datagrams are never answered (replays)
             counters[ERROR_NAMES[order]] += 1
@@ -181,20 +195,20 @@ class Dispatcher:
         return out
 
     def _handshake(self, session: Session, seq: int, t_client_us: int, stream: int, size: int,
-                   now_ns: int) -> bytes | None:
-        """A hello (answered NEW_STREAM with the offer) or a POSE of a stream that is not
-        open (WRONG_STREAM): never ticked, answered within the session's own notice bucket
-        and never longer than the request."""
+                   now_ns: int, peer: object) -> bytes | None:
+        """A hello (answered NEW_STREAM with ``peer``'s offer) or a POSE of a stream that is
+        not open for ``peer`` (WRONG_STREAM): never ticked, answered within the session's own
+        notice bucket and never longer than the request."""
         counters = self.counters
-        if stream == 0:
-            code, stream = NEW_STREAM, session.hello()
-        else:
-            code = WRONG_STREAM
-            session.counters["wrong_stream"] += 1
+        hello = stream == 0
+        code = NEW_STREAM if hello else WRONG_STREAM
+        session.counters["hellos" if hello else "wrong_stream"] += 1
         counters[ERROR_NAMES[code]] += 1
-        if not session.stream_notice_allowed(now_ns, code == WRONG_STREAM):
+        if not session.stream_notice_allowed(now_ns, not hello):
             counters["notices_suppressed"] += 1
             return None
+        if hello:  # after the bucket: hellos beyond its rate use up no numbers
+            stream = session.hello(peer)
         notice = encode_notice_values(session.id, seq, t_client_us, code, stream,
                                       session.tagger)
         if len(notice) > size:

@@ -109,6 +109,8 @@ class PeerSockets:
         self.poller = poller
         self.by_fd: dict[int, socket.socket] = {}
         self.by_peer: dict[object, socket.socket] = {}
+        #: The address of each peer socket's peer (the dispatcher's ``peer``).
+        self.peer_of: dict[int, object] = {}
         self.last_ns: dict[int, int] = {}
         #: Called with a peer socket's descriptor when it closes.
         self.on_close: Callable[[int], None] | None = None
@@ -132,12 +134,14 @@ class PeerSockets:
         fd = sock.fileno()
         self.by_fd[fd] = sock
         self.by_peer[peer] = sock
+        self.peer_of[fd] = peer
         self.last_ns[fd] = now_ns
         self.poller.register(fd, select.EPOLLIN)
 
     def close(self, fd: int) -> None:
         sock = self.by_fd.pop(fd)
         self.last_ns.pop(fd, None)
+        self.peer_of.pop(fd, None)
         if self.on_close is not None:
             self.on_close(fd)
         for peer, s in list(self.by_peer.items()):
@@ -211,6 +215,7 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
         counters.setdefault(name, 0)
     peers = PeerSockets(sock, poller, counters)
     by_fd = peers.by_fd
+    peer_of = peers.peer_of
     last_ns = peers.last_ns
     clock = time.monotonic_ns
     # select() takes descriptors below FD_SETSIZE only: a loop whose epoll lies beyond
@@ -258,7 +263,7 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                     continue
                 t_recv = clock()
                 with lock:
-                    out = handle(n, t_recv)
+                    out = handle(n, t_recv, None, peer_of[fd])
                 last_ns[fd] = t_recv
                 if wake is not None:
                     wake.arrived(fd, t_recv)
@@ -282,7 +287,7 @@ def serve(sock: socket.socket, dispatcher: Dispatcher, lock: threading.Lock,
                             return
                         t_recv = clock()
                         with lock:
-                            out = handle(n, t_recv)
+                            out = handle(n, t_recv, None, addr)
                             accepted = dispatcher.accepted
                         if out is not None:
                             try:

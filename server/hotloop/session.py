@@ -102,6 +102,9 @@ _STREAM_MODULUS = 1 << 32
 #: needs one or two; a session of its own so a flood elsewhere cannot starve it.
 STREAM_NOTICE_RATE_HZ = 100.0
 STREAM_NOTICE_BURST = 20.0
+#: Sources whose offers may await their commit at once; a hello from one more withdraws the
+#: oldest offer (its commit is answered WRONG_STREAM, and that client asks again).
+MAX_OFFERS = 4
 
 
 class Session:
@@ -112,10 +115,12 @@ class Session:
     stream's datagrams, :meth:`respond` answers each admitted one. Not thread-safe: the hot
     loop serializes access.
 
-    Streams: ``stream`` is the open one (0: none), ``offer`` the one a hello was answered with
-    (0: none), ``next_stream`` the next number to offer. Numbers only go forward (mod 2^32,
-    skipping 0), so a stream once ended never opens again and a captured datagram of it is
-    never answered.
+    Streams: ``stream`` is the open one (0: none), ``stream_peer`` the source address that
+    opened it, ``offers`` the numbers hellos were answered with, by the source that asked,
+    ``next_stream`` the next number to offer. Numbers only go forward (mod 2^32, skipping 0)
+    and each goes to one source only, so two clients never share a stream, a stream once
+    ended never opens again and a captured datagram of it is never answered. (A source is
+    whatever the loop passes: an address; None in tests that call the dispatcher directly.)
     """
 
     def __init__(self, session_id: int, engine: BoneEngine, config: SessionConfig | None = None,
@@ -139,7 +144,8 @@ class Session:
         self.key = key
         self.tagger = Tagger(key) if key is not None else None
         self.stream = 0
-        self.offer = 0
+        self.stream_peer: object = None
+        self.offers: dict[object, int] = {}
         self.next_stream = next_stream
         self.last_seq: int | None = None
         #: The session's notice buckets, for NEW_STREAM and WRONG_STREAM: two, so that
@@ -262,7 +268,8 @@ class Session:
         """End the open stream and forget any offer: the client's next POSE gets
         WRONG_STREAM and it says hello again (REST ``restart-stream``)."""
         self.stream = 0
-        self.offer = 0
+        self.stream_peer = None
+        self.offers.clear()
         self.last_seq = None
         self._forget_motion()
 
@@ -280,20 +287,34 @@ class Session:
         self.engine.forget_last_carve()
 
     # -- streams (SPEC.md 5.2) ---------------------------------------------------------------
-    def hello(self) -> int:
-        """The stream offered to a hello: the same offer until it is committed. The open
-        stream is untouched (a replayed hello cannot disturb it)."""
-        self.counters["hellos"] += 1
-        if self.offer == 0:
-            self.offer = self.next_stream
-            self.next_stream = (self.next_stream + 1) % _STREAM_MODULUS or 1
-        return self.offer
+    @property
+    def offer(self) -> int:
+        """The latest offer still awaiting its commit (0: none)."""
+        return next(reversed(self.offers.values()), 0)
 
-    def commit(self) -> None:
-        """A POSE carried the offered stream: it becomes the open one, with a fresh sequence
-        and velocity state (its first tick is STALE); the previous stream is over."""
-        self.stream = self.offer
-        self.offer = 0
+    def hello(self, peer: object = None) -> int:
+        """The stream offered to a hello from ``peer``: the same offer until it is committed,
+        a number of its own to every other source (two clients asking at once never share
+        one). The open stream is untouched (a replayed hello cannot disturb it)."""
+        offer = self.offers.get(peer)
+        if offer is None:
+            if len(self.offers) >= MAX_OFFERS:
+                del self.offers[next(iter(self.offers))]  # the oldest asker asks again
+            offer = self.offers[peer] = self.next_stream
+            self.next_stream = (self.next_stream + 1) % _STREAM_MODULUS or 1
+        return offer
+
+    def offered(self, stream: int, peer: object) -> bool:
+        """``stream`` is the offer made to ``peer``: its POSE may commit it."""
+        return stream != 0 and self.offers.get(peer) == stream
+
+    def commit(self, peer: object = None) -> None:
+        """A POSE from ``peer`` carried its offer: that stream becomes the open one, bound to
+        ``peer``, with a fresh sequence and velocity state (its first tick is STALE unless
+        the POSE carries a velocity); the previous stream and every other offer are over."""
+        self.stream = self.offers[peer]
+        self.stream_peer = peer
+        self.offers.clear()
         self.last_seq = None
         self.counters["streams"] += 1
         self._forget_motion()

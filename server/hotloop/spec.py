@@ -105,10 +105,17 @@ class HotLoopConfig:
     """Where the hot loop listens, the sessions it starts with, whether it wakes ahead of
     its streams' packets (``hotloop.wake``), and whether its loop thread asks for the
     real-time scheduler (``server.realtime``; it then blocks for each datagram instead of
-    waking ahead)."""
+    waking ahead).
+
+    ``restoring``: the ids of sessions the control plane is about to add back after a
+    restart (``api.supervisor``). Their datagrams are held, unanswered, until each is back
+    (then its client hears WRONG_STREAM once and says hello) or the command ``restored``
+    says the restore is over; never UNKNOWN_SESSION, which a client takes for a session that
+    is gone."""
 
     host: str = "127.0.0.1"
     udp_port: int = 0
     sessions: tuple[SessionSpec, ...] = ()
     wake: WakeConfig = DEFAULT_WAKE
     realtime: bool = False
+    restoring: tuple[int, ...] = ()
