@@ -8,7 +8,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis_profiles import examples
 
-from burrforce.server.api.journal_carve import CarveLog, apply_log, read_carving, read_log
+from burrforce.server.api.journal_carve import (
+    BRICK_BYTES,
+    RECORD_BRICKS,
+    CarveLog,
+    apply_log,
+    read_carving,
+    read_log,
+)
 from burrforce.server.bone import BoneEngine, ShaftParams, phantom
 from burrforce.server.model.params import CuttingParams
 
@@ -50,6 +57,12 @@ def test_replaying_the_log_gives_the_carved_bone_back(tmp_path, carved):
     assert fresh.grid.version == bone.grid.version
 
 
+def _replayed(path) -> np.ndarray:
+    fresh = phantom("workpiece", 0.2)
+    apply_log(fresh.grid, *read_log(path))
+    return fresh.grid.swept
+
+
 def test_a_record_cut_short_ends_the_log_and_keeps_what_came_before(tmp_path, carved):
     bone, engine = carved
     path = tmp_path / "carve.log"
@@ -61,27 +74,30 @@ def test_a_record_cut_short_ends_the_log_and_keeps_what_came_before(tmp_path, ca
     _groove(engine, 6.0, 200)
     log.append(bone.grid.swept, bone.grid.brick_version)
     data = path.read_bytes()
-    for cut in (first + 3, first + 20, len(data) - 1):  # a crash in the second write
+    records = len(read_carving(path).scan.records)
+    for cut in (first + 3, first + 20):  # a crash in the second write's first record
         path.write_bytes(data[:cut])
-        fresh = phantom("workpiece", 0.2)
-        apply_log(fresh.grid, *read_log(path))
-        assert np.array_equal(fresh.grid.swept, kept)
+        assert np.array_equal(_replayed(path), kept)
+    # A crash in its last record: the records before it, whole bricks each, are kept.
+    path.write_bytes(data[:-1])
+    torn = read_carving(path).scan
+    assert torn.tail > 0 and not torn.damaged and len(torn.records) == records - 1
     # A server that goes on after a torn record (resumed, or a write that failed) cuts it
     # off first: what it appends next is read back.
     path.write_bytes(data[:first + 20])
     log = CarveLog(path)
     _groove(engine, 12.0, 200)
     log.append(bone.grid.swept, bone.grid.brick_version)
-    fresh = phantom("workpiece", 0.2)
-    apply_log(fresh.grid, *read_log(path))
-    assert np.array_equal(fresh.grid.swept, bone.grid.swept)
+    assert np.array_equal(_replayed(path), bone.grid.swept)
     data = path.read_bytes()
+    last = read_carving(path).scan.records[-1]
     damaged = bytearray(data)
-    damaged[-5] ^= 0xFF  # a flipped bit in the second record's payload: its CRC fails
+    damaged[-5] ^= 0xFF  # a flipped bit in the last record's payload: its CRC fails
     path.write_bytes(bytes(damaged))
-    fresh = phantom("workpiece", 0.2)
-    apply_log(fresh.grid, *read_log(path))
-    assert np.array_equal(fresh.grid.swept, kept)
+    without_last = data[:len(data) - 16 - len(last[2])]
+    (tmp_path / "expected.log").write_bytes(without_last)
+    assert np.array_equal(_replayed(path), _replayed(tmp_path / "expected.log"))
+    assert not np.array_equal(_replayed(path), bone.grid.swept)
 
 
 def test_compaction_keeps_the_latest_record_of_each_brick(tmp_path, carved, monkeypatch):
@@ -180,16 +196,19 @@ def test_damage_in_the_middle_loses_only_what_it_covers(tmp_path, carved):
         data[sizes[0] + 100 + 7 * k] ^= 0xFF
     path.write_bytes(bytes(data))
     found = read_carving(path)
-    assert found.scan.damaged == [(sizes[0], sizes[1] - sizes[0])]
-    assert found.scan.tail == 0 and len(found.scan.records) == 3
-    # The third and fourth records came through: their grooves are in the replay.
+    # One small record lost (records hold RECORD_BRICKS bricks), the rest read on.
+    ((at, n),) = found.scan.damaged
+    assert at == sizes[0] and n <= 16 + RECORD_BRICKS * BRICK_BYTES
+    assert found.scan.tail == 0
+    assert len(found.scan.records) == len(clean.scan.records) - 1
     keys = {tuple(i) for i in found.index.tolist()}
-    assert keys < {tuple(i) for i in clean.index.tolist()}
+    assert keys <= {tuple(i) for i in clean.index.tolist()}
     data[:] = path.read_bytes()
     data[sizes[1]:sizes[1] + 4096] = np.random.default_rng(1).bytes(4096)
     path.write_bytes(bytes(data))
     worse = read_carving(path)
-    assert worse.scan.damaged_bytes >= sizes[1] - sizes[0] + 4096 - 16
+    assert worse.scan.damaged_bytes >= n + 4096
+    assert len(worse.scan.records) >= len(clean.scan.records) - 3
     data[0] ^= 0xFF  # the header
     path.write_bytes(bytes(data))
     assert read_carving(path).scan.header_damaged
