@@ -353,3 +353,77 @@ def test_a_journal_that_cannot_be_written_is_degraded_until_it_can_and_a_kill_sa
     finally:
         code, out = second.stop()
     assert code == 0, out
+
+
+def test_a_journal_of_the_previous_release_resumes_and_is_migrated(journaled, tmp_path):
+    """Format 1, as releases before this one wrote it: session.json without a checksum or a
+    log id, a carve log of brick records with payload-only CRCs and no header, no state."""
+    import json
+    import struct
+    import zlib
+
+    from burrforce.server.api.journal_carve import read_carving
+
+    folder = tmp_path / "run"
+    shutil.copytree(journaled["folder"], folder, symlinks=True)
+    c, before = journaled["conn"], journaled["state"]
+    journal = _folder(folder / "data", c.session)
+    record = json.loads((journal / "session.json").read_text())
+    for key in ("checksum", "carve_log"):
+        record.pop(key)
+    record["format_version"] = 1
+    (journal / "session.json").write_text(json.dumps(record))
+    content = read_carving(journal / "carve.log")
+    payload = (content.index.astype("<i4").tobytes() + content.version.astype("<i8").tobytes()
+               + content.swept.tobytes())
+    (journal / "carve.log").write_bytes(struct.pack(
+        "<4sIII", b"BFCR", len(content.index), len(payload), zlib.crc32(payload)) + payload)
+    (journal / "state.bin").unlink()
+    second = spawn_serve(folder, *BONE)
+    try:
+        c2 = second.connection
+        assert c2.key_hex == c.key_hex and "carving and key as they were" in second.banner
+        with _api(c2) as api:
+            # Every bone voxel as it was (air a burr passed is marked in bricks the journal
+            # writes only once they lose bone: not carving).
+            bone = journaled["density"] > 0
+            assert np.array_equal(_swept(api, c2.session)[bone], journaled["swept"][bone])
+            state = api.get(f"/v1/sessions/{c2.session}/state").json()
+            assert state["removed_mm3"] == before["removed_mm3"]
+            assert state["forbidden_events"] == 0  # format 1 kept none
+            assert api.get(f"/v1/sessions/{c2.session}").json()["journal"]["recovery"] is None
+        # Migrated: format 2 files, the same carving.
+        assert json.loads((journal / "session.json").read_text())["format_version"] == 2
+        migrated = read_carving(journal / "carve.log")
+        assert migrated.scan.version == 2 and len(migrated.index) == len(content.index)
+        assert read_state(journal / "state.bin") is not None
+    finally:
+        code, out = second.stop()
+    assert code == 0, out
+
+
+def test_journal_files_removed_while_serving_are_written_again_whole(tmp_path):
+    config = ServeConfig(http_port=0, udp_port=0, data_dir=tmp_path)
+    with ServerStack(config, TOKEN) as stack:
+        source = stack.plane.resolve("phantom:workpiece", None, 0.5)
+        session = stack.add_session(source, Parameters(), session_id=2)
+        with BurrClient(*stack.udp_address, 2, session.key_hex) as client:
+            for i in range(200):
+                try:
+                    client.exchange((3.0 + 0.01 * i, 0.0, -0.6), rpm=60000.0, timeout_s=0.5)
+                except (TimeoutError, ServerGone):
+                    pass
+        stack.journal.write()
+        journal = _folder(tmp_path, 2)
+        shutil.rmtree(journal)
+        stack.journal.write()
+        assert session.journal.state == "ok"
+        state = read_state(journal / "state.bin")
+        assert state.bone_version == session.reader.version and not state.unlogged_bricks
+        bone = session.reader.density > 0
+        swept = session.reader.swept[bone].copy()
+    with ServerStack(config, TOKEN) as stack:
+        assert stack.resumed == [2]
+        resumed = stack.plane.sessions[2]
+        assert resumed.journal.recovery is None
+        assert np.array_equal(resumed.reader.swept[bone], swept)

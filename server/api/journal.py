@@ -184,17 +184,24 @@ class Journal:
         if bone is None or bone.ref is not session.ref:  # a new bone: its carving starts over
             bone = BoneJournal(folder, session.ref, new_log_id())
             self._bones[sid] = bone
+        elif bone.started and not (bone.carve.path.exists() and bone.state.path.exists()):
+            # Removed behind the journal's back: written again, whole (every brick stamped).
+            bone = BoneJournal(folder, session.ref, bone.log_id)
+            self._bones[sid] = bone
         problems = []
         # The later of what the loop reported and what it was started with.
         stream = later_stream(self.stream_of(sid), session.next_stream)
         text = sealed({**session_record(session, stream), "carve_log": bone.log_id})
         path = folder / SESSION_FILE
         try:
+            try:  # in use: MAX_AGE_DAYS counts from the last pass, not the last change
+                if self._written.get(sid) == text:
+                    os.utime(path)
+            except FileNotFoundError:
+                self._written.pop(sid)
             if self._written.get(sid) != text:
                 write_atomic(path, text.encode())
                 self._written[sid] = text
-            else:  # in use: MAX_AGE_DAYS counts from the last pass, not the last change
-                os.utime(path)
         except OSError as exc:
             self._written.pop(sid, None)
             problems.append(f"{SESSION_FILE}: {_why(exc)}")
