@@ -216,7 +216,7 @@ def test_a_damaged_carve_log_resumes_with_its_key_and_says_exactly_what_it_lost(
         assert health["journal"]["recovered"][0]["removed_mm3"] == recovery["removed_mm3"]
         assert any(recovery["summary"] in note for note in report.json()["notes"])
         # Nothing deleted: the damaged log kept, byte for byte, beside the new one.
-        kept = [Path(p) for p in recovery["kept"]]
+        kept = [folder / "data" / p for p in recovery["kept"]]
         assert any(p.name.startswith("carve.log.damaged-") and p.read_bytes() == damaged
                    for p in kept)
         assert names <= {p.name for p in journal.iterdir()}
@@ -249,7 +249,7 @@ def test_an_invalid_key_in_session_json_is_quarantined_and_serve_starts(
         assert len(kept) == 1 and kept[0]["session"] == str(c.session)
         reason = "invalid key" if record_format == 1 else "checksum"
         assert reason in kept[0]["reason"]
-        aside = Path(kept[0]["folder"])
+        aside = folder / "data" / kept[0]["folder"]
         assert aside.name.startswith(f"{c.session}.failed-")
         # Every file kept as it was (the damaged key with them), and the reason beside them.
         assert {p.name: p.read_bytes() for p in aside.iterdir() if p.name != "WHY.txt"} \

@@ -47,6 +47,7 @@ from .journal_resume import (
     SESSION_FILE,
     STATE_FILE,
     Resumed,
+    in_data_dir,
 )
 from .journal_resume import resume as resume_sessions
 from .journal_state import JournalState, StateFile
@@ -251,19 +252,25 @@ class Journal:
         return [p for p in self.root.iterdir() if p.is_dir() and p.name.isdigit()]
 
     def kept_aside(self) -> list[dict]:
-        """Session folders a resume could not use, kept for a human (``<id>.failed-…``)."""
+        """Session folders a resume could not use, kept for a human (``<id>.failed-…``,
+        relative to the data directory), and why."""
         if not self.root.is_dir():
             return []
         out = []
+        # This start's reasons first: a WHY.txt may not have fitted a full disk.
+        known = {Path(q.folder).name: q.reason for q in self.resumed.quarantined}
         for p in sorted(self.root.iterdir()):
             if not (p.is_dir() and ".failed-" in p.name):
                 continue
+            if p.name in known:
+                self._reasons[p.name] = known[p.name]
             if p.name not in self._reasons:
                 try:
                     self._reasons[p.name] = (p / "WHY.txt").read_text().strip()
                 except OSError:
                     self._reasons[p.name] = "unknown (no WHY.txt)"
-            out.append({"folder": str(p), "session": p.name.split(".", 1)[0],
+            out.append({"folder": in_data_dir(self.plane.data_dir, p),
+                        "session": p.name.split(".", 1)[0],
                         "reason": self._reasons[p.name]})
         return out
 

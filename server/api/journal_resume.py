@@ -64,7 +64,7 @@ class Recovery:
         contacts: forbidden contacts whose time, place and label were lost (still counted).
         versions: bone versions lost (the version at the last pass − the resumed one).
         causes: what happened to the files (damaged bytes, a log behind, a missing state).
-        kept: the damaged files, kept under these names.
+        kept: the damaged files, kept under these names (relative to the data directory).
         measured: False when there was no journal state to measure against (a journal from
             before it existed, or a damaged state): the loss is then unknown.
     """
@@ -101,7 +101,8 @@ class Recovery:
 
 @dataclass
 class Quarantined:
-    """A session folder that could not be resumed, kept for a human (``/v1/health``)."""
+    """A session folder that could not be resumed, kept for a human (``/v1/health``);
+    ``folder`` is relative to the data directory."""
 
     session: str
     folder: str
@@ -194,7 +195,7 @@ def _resume_folder(plane: ControlPlane, folder: Path, adopt: Adopt,
         for name in (CARVE_FILE, STATE_FILE):
             aside = keep_aside(folder / name, "damaged")
             if aside is not None:
-                recovery.kept.append(str(aside))
+                recovery.kept.append(in_data_dir(plane.data_dir, aside))
         session.journal.recovery = recovery.as_dict()
         out.recoveries.append(recovery)
         text = (f"journal: session {session.id} resumed with its key, up to its journal's "
@@ -278,6 +279,8 @@ def measure(session_id: int, content: LogContent, state: JournalState | None,
     out.bricks = max(0, int(state.log.get("bricks", 0)) - len(content.index)) \
         + state.unlogged_bricks
     out.contacts = max(0, state.contacts - content.contacts_begun)
+    if not (out.removed_mm3 > 0 or out.bricks or out.versions or out.contacts):
+        return out  # the log holds all the last pass knew (or more: a crash before its state)
     if state.behind_since is not None:
         since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(state.behind_since))
         out.causes.append(f"the journal could not be written from {since} "
@@ -286,6 +289,15 @@ def measure(session_id: int, content: LogContent, state: JournalState | None,
     if found.size < had and not found.damaged:
         out.causes.append(f"{CARVE_FILE} holds {found.size} of the {had} bytes it had")
     return out
+
+
+def in_data_dir(data_dir: Path, path: Path) -> str:
+    """``path`` relative to the data directory (what /v1/health, which needs no token,
+    shows: where, not the machine's layout)."""
+    try:
+        return str(path.relative_to(data_dir))
+    except ValueError:
+        return path.name
 
 
 def _quarantine(plane: ControlPlane, folder: Path, reason: str,
@@ -305,7 +317,7 @@ def _quarantine(plane: ControlPlane, folder: Path, reason: str,
         (aside / "WHY.txt").write_text(reason + "\n")
     except OSError:
         pass
-    out.quarantined.append(Quarantined(folder.name, str(aside), reason))
+    out.quarantined.append(Quarantined(folder.name, in_data_dir(plane.data_dir, aside), reason))
     text = (f"journal: session {folder.name} could not be resumed ({reason}); its journal "
             f"is kept in {aside}")
     say(text)
