@@ -27,6 +27,7 @@ from . import (
 from .config import TOKEN_FILE
 from .docs_pages import add_docs_pages
 from .errors import ApiError, Invalid, Unauthorized, from_disk_full, http_status
+from .journal import Journal
 from .metrics import LoopStats, registry
 from .plane import ControlPlane
 from .sources import SourceError
@@ -63,8 +64,10 @@ def token_whereabouts(config: object) -> str:
 
 
 def create_app(plane: ControlPlane, token: str, stats: LoopStats,
-               supervisor: Supervisor | None = None) -> FastAPI:
-    """The REST app over ``plane``. Every route except /v1/health needs ``token``."""
+               supervisor: Supervisor | None = None, journal: Journal | None = None
+               ) -> FastAPI:
+    """The REST app over ``plane``. Every route except /v1/health needs ``token``;
+    ``journal``: the session journal, whose state /v1/health and /metrics show."""
     where = token_whereabouts(plane.config)
 
     def authorize(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
@@ -131,7 +134,10 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         """Liveness without a token: are all hot-loop workers running (503 if one is not,
         e.g. while it is restarted after a crash), how many sessions, the restarts; per
         worker (``workers``): pid, UDP endpoint, sessions, state, restarts. ``udp`` is worker
-        0's endpoint; each session's own is in its view."""
+        0's endpoint; each session's own is in its view. ``journal``: ok, or degraded while a
+        session's journal cannot be written (``status`` then says degraded, still 200: a
+        restart would lose carving, not gain any), what resuming sessions at start lost, and
+        the journals that could not be resumed and were kept aside."""
         loop = supervisor.public() if supervisor is not None else None
         workers = []
         for index, hot in enumerate(list(plane.workers)):
@@ -153,7 +159,11 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
         status = "ok" if alive else (f"hot loop {loop['state']}" if loop else "hot loop down")
         if loop is not None and loop["state"] == "running" and not alive:
             status = "hot loop down"
+        journaled = journal.public() if journal is not None else {"state": "off"}
+        if alive and journaled["state"] == "degraded":
+            status = "degraded"
         return {"status": status, "hot_loop": alive, "supervisor": loop,
+                "journal": journaled,
                 "version": __version__,
                 "uptime_s": round(time.time() - plane.started_s, 1),
                 "sessions": len(plane.sessions),
@@ -164,6 +174,8 @@ def create_app(plane: ControlPlane, token: str, stats: LoopStats,
     reg = registry(stats, getattr(plane, "devices", None))
     if supervisor is not None:
         reg.register(supervisor)
+    if journal is not None:
+        reg.register(journal)
 
     @app.get("/metrics", tags=["system"], dependencies=[Depends(authorize)],
              response_class=Response)

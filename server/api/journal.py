@@ -2,17 +2,22 @@
 
 Every ``INTERVAL_S`` a thread of the control plane writes, for each session, what it takes to
 build it again (``session.json``: id, key, bone source, parameters, features, material
-changes, calibrations, the next stream number) and appends the bricks its burr changed since
-the last pass to its carve log (``journal_carve``). Both writes are cheap (a few kB a second
-while cutting) and never touch the hot loop: the bricks are read from the bone the control
-plane already maps.
-
-``burrforce serve`` then resumes the journaled sessions (``resume``): the same ids and keys,
-the bone loaded from its source again with the carve log replayed onto it, so at most the
-last interval of cutting is lost. Layout::
+changes, calibrations, the next stream number, the id of its carve log; ``journal_record``),
+appends the bricks its burr changed and the forbidden contacts it began since the last pass to
+its carve log (``journal_carve``), and overwrites its state (``state.bin``: the bone's removal,
+contacts and version and what the log holds; ``journal_state``) — the yardstick a restart
+measures any loss against. The bricks and the tally are read from the bone the control plane
+already maps, at one moment between two ticks (``SharedBone.carving_since``); nothing of it runs
+in the hot loop. Layout::
 
     DATA_DIR/journal/sessions/<id>/session.json   (mode 0600: it holds the key)
     DATA_DIR/journal/sessions/<id>/carve.log
+    DATA_DIR/journal/sessions/<id>/state.bin
+
+``burrforce serve`` then resumes the journaled sessions (``journal_resume``). A pass that
+cannot write (a full disk) marks the session's journal ``degraded`` — in its view,
+``/v1/health`` and ``/metrics`` — and the next pass tries again; the state file, written in
+place, records how far behind the log is, so a restart in that window says what it lost.
 
 A session's journal goes when the session is deleted over REST, when ``serve --fresh``
 starts, or when it has not been written for ``MAX_AGE_DAYS``.
@@ -20,67 +25,64 @@ starts, or when it has not been written for ``MAX_AGE_DAYS``.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
+import secrets
 import shutil
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from .config import is_loopback
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
 from .daemon import start_daemon, stop_daemon
-from .errors import ApiError
 from .housekeeping import journal_dir
-from .journal_carve import CarveLog, apply_log, read_log, write_atomic
-from .models import Features, Parameters
+from .journal_carve import CarveLog, LogContent
+from .journal_format import write_atomic
+from .journal_record import sealed, session_record
+from .journal_resume import (
+    CARVE_FILE,
+    MAX_AGE_DAYS,
+    SESSION_FILE,
+    STATE_FILE,
+    Resumed,
+    in_data_dir,
+)
+from .journal_resume import resume as resume_sessions
+from .journal_state import JournalState, StateFile
 from .plane import ControlPlane
 from .sessions import ManagedSession
-from .sources import SourceError, file_source
-from .views import parameters_view
-from .workers import later_stream, next_stream_after
+from .workers import later_stream
 
 log = logging.getLogger("burrforce.journal")
 
-FORMAT = "burrforce-journal"
-FORMAT_VERSION = 1
+__all__ = ["MAX_AGE_DAYS", "Journal", "discard", "discard_session", "resume"]
+
 #: Seconds between two passes: the most cutting a crash can lose.
 INTERVAL_S = 1.0
-#: Journals not written for this long are discarded at start.
-MAX_AGE_DAYS = 30
-SESSION_FILE = "session.json"
-CARVE_FILE = "carve.log"
 
 
-def session_record(session: ManagedSession, stream: int | None) -> dict:
-    """What it takes to build ``session`` again (JSON-ready)."""
-    params = parameters_view(session)
-    params.pop("burr_calibrated")  # follows from the burr
-    params.pop("burr_profile_mm")  # likewise
-    for name in ("us_n_mm2", "k", "primary_material_name"):  # in the material changes
-        params.pop(name)
-    source = session.source
-    return {
-        "format": FORMAT, "format_version": FORMAT_VERSION,
-        "id": session.id, "key_hex": session.key_hex,
-        "source": {"source": source.source, "kind": source.kind,
-                   "voxel_mm": source.voxel_mm,
-                   "spacing_mm": list(source.spacing_mm) if source.spacing_mm else None,
-                   "path": str(source.path) if source.path is not None else None},
-        "parameters": params,
-        "features": session.features.model_dump(),
-        "primary_label": session.primary_label,
-        # JSON keys are strings: None (the primary material, before a bone) is "primary".
-        "overrides": {("primary" if k is None else str(k)): v
-                      for k, v in session.overrides.items()},
-        "calibrations": {str(k): v for k, v in session.calibrations.items()},
-        "created": session.created_s,
-        "next_stream": stream,
-        # Its worker's UDP port is the one its engine streams to: resumed on the same one.
-        "worker": session.worker,
-        "bone_generation": (session.bone_info or {}).get("generation"),
-    }
+class BoneJournal:
+    """One session's journal files for its current bone: the carve log and the state file,
+    written afresh (``started``) once ``session.json`` names the log."""
+
+    def __init__(self, folder: Path, ref: object, log_id: int, since_version: int = 0,
+                 content: LogContent | None = None) -> None:
+        self.ref = ref
+        self.log_id = log_id
+        self.carve = CarveLog(folder / CARVE_FILE, since_version, log_id)
+        self.state = StateFile(folder / STATE_FILE)
+        #: What the log starts with (a resumed session's replayed carving).
+        self.content = content
+        self.started = False
+        self.state_made = False
+        #: When appending to the log began to fail (None while it succeeds).
+        self.behind_since: float | None = None
+
+
+def new_log_id() -> int:
+    return secrets.randbits(62) + 1
 
 
 class Journal:
@@ -93,12 +95,16 @@ class Journal:
         self.stream_of = stream_of
         self.interval_s = interval_s
         self._written: dict[int, str] = {}
-        self._logs: dict[int, tuple[object, CarveLog]] = {}
+        self._bones: dict[int, BoneJournal] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.passes = 0
+        #: Session passes that failed to write something (a full disk).
         self.errors = 0
         self.last_error: str | None = None
+        #: What the resume at start did (``journal_resume.Resumed``).
+        self.resumed = Resumed()
+        self._reasons: dict[str, str] = {}
 
     def start(self) -> None:
         self._thread = start_daemon(self._run, "burrforce-journal")
@@ -113,24 +119,20 @@ class Journal:
         while not self._stop.wait(self.interval_s):
             self.write()
 
-    def adopt(self, session_id: int, ref: object, since_version: int) -> None:
-        """A resumed session's log already holds its carving up to ``since_version``."""
-        self._logs[session_id] = (ref, CarveLog(self.root / str(session_id) / CARVE_FILE,
-                                                since_version))
+    def adopt(self, session: ManagedSession, content: LogContent, since_version: int,
+              log_id: int | None) -> None:
+        """A resumed session: its log starts with the carving just replayed (``content``,
+        stamped up to ``since_version``), written now rather than at the next pass (the
+        damaged files it replaces are kept aside already)."""
+        folder = self.root / str(session.id)
+        self._bones[session.id] = BoneJournal(folder, session.ref, log_id or new_log_id(),
+                                              since_version, content)
+        with session.lock:
+            self._write_one(session.id, session)
 
     def write(self) -> None:
-        """One pass: every session's record if it changed, the bricks carved since the last
-        pass, and the journals of deleted sessions removed."""
-        try:
-            self._write()
-            self.passes += 1
-        except Exception as exc:  # a full disk must not stop the journal for good
-            self.errors += 1
-            if str(exc) != self.last_error:
-                log.error("the session journal could not be written: %s", exc)
-            self.last_error = str(exc)
-
-    def _write(self) -> None:
+        """One pass: every session's record if it changed, the carving since the last pass,
+        its state; the journals of deleted sessions removed."""
         for sid, session in list(self.plane.sessions.items()):
             # Under the session's lock, which a delete holds while it removes the session
             # and its journal: a pass never writes a deleted session back. A session busy
@@ -139,7 +141,7 @@ class Journal:
                 continue
             try:
                 if self.plane.sessions.get(sid) is session:
-                    self._write_session(sid, session)
+                    self._write_one(sid, session)
             finally:
                 session.lock.release()
         live = self.plane.sessions
@@ -147,41 +149,181 @@ class Journal:
             if sid not in live:
                 shutil.rmtree(self.root / str(sid), ignore_errors=True)
                 self._written.pop(sid, None)
-                self._logs.pop(sid, None)
+                self._bones.pop(sid, None)
+        self.passes += 1
 
-    def _write_session(self, sid: int, session: ManagedSession) -> None:
+    def _write_one(self, sid: int, session: ManagedSession) -> None:
+        """``_write_session``, its outcome in the session's journal status; never raises (a
+        full disk must not stop the journal, nor one session's trouble the others')."""
+        now = time.time()
+        try:
+            problems = self._write_session(sid, session, now)
+        except Exception as exc:
+            log.exception("journal: session %s", sid)
+            problems = [f"{type(exc).__name__}: {exc}"]
         if session.state != "ready":
-            return  # a first load in progress or failed: nothing to resume yet
+            return
+        if not problems:
+            if session.journal.state == "degraded":
+                log.warning("journal: session %s is written again", sid)
+            session.journal.written(now)
+            return
+        self.errors += 1
+        error = "; ".join(problems)
+        if error != session.journal.error:
+            log.error("the journal of session %s could not be written: %s", sid, error)
+        self.last_error = error
+        session.journal.failed(error, now)
+
+    def _write_session(self, sid: int, session: ManagedSession, now: float) -> list[str]:
+        """One session's pass; returns what could not be written."""
+        reader = session.reader
+        if session.state != "ready" or reader is None:
+            return []  # a first load in progress or failed: nothing to resume yet
         folder = self.root / str(sid)
+        bone = self._bones.get(sid)
+        if bone is None or bone.ref is not session.ref:  # a new bone: its carving starts over
+            bone = BoneJournal(folder, session.ref, new_log_id())
+            self._bones[sid] = bone
+        elif bone.started and not (bone.carve.path.exists() and bone.state.path.exists()):
+            # Removed behind the journal's back: written again, whole (every brick stamped).
+            bone = BoneJournal(folder, session.ref, bone.log_id)
+            self._bones[sid] = bone
+        problems = []
         # The later of what the loop reported and what it was started with.
         stream = later_stream(self.stream_of(sid), session.next_stream)
-        record = json.dumps(session_record(session, stream), indent=1, sort_keys=True)
+        text = sealed({**session_record(session, stream), "carve_log": bone.log_id})
         path = folder / SESSION_FILE
-        if self._written.get(sid) != record:
-            write_atomic(path, record.encode())
-            self._written[sid] = record
-        else:
+        try:
             try:  # in use: MAX_AGE_DAYS counts from the last pass, not the last change
-                os.utime(path)
+                if self._written.get(sid) == text:
+                    os.utime(path)
             except FileNotFoundError:
-                write_atomic(path, record.encode())
-        reader, ref = session.reader, session.ref
-        if reader is None:
-            return
-        known = self._logs.get(sid)
-        if known is None or known[0] is not ref:  # a new bone: its carving starts over
-            carve = CarveLog(folder / CARVE_FILE)
-            carve.reset(0)
-            self._logs[sid] = (ref, carve)
-        else:
-            carve = known[1]
-        carve.append(reader.swept, reader.brick_version)
+                self._written.pop(sid)
+            if self._written.get(sid) != text:
+                write_atomic(path, text.encode())
+                self._written[sid] = text
+        except OSError as exc:
+            self._written.pop(sid, None)
+            problems.append(f"{SESSION_FILE}: {_why(exc)}")
+        if not bone.started and self._written.get(sid) == text:
+            # Only once session.json names this log: a log it does not name is not replayed.
+            try:
+                bone.carve.start(bone.content, bone.carve.since_version)
+                bone.started, bone.content = True, None
+            except OSError as exc:
+                problems.append(f"{CARVE_FILE}: {_why(exc)}")
+        take = reader.carving_since(bone.carve.since_version)
+        first, rows = reader.tally.rows_since(bone.carve.contacts)
+        unlogged = len(take.index)
+        if bone.started:
+            top = int(take.version.max()) if len(take.version) else bone.carve.since_version
+            try:
+                bone.carve.append_carving(take.index, take.version, take.blocks, top,
+                                          (first, rows))
+                unlogged, bone.behind_since = 0, None
+            except OSError as exc:
+                problems.append(f"{CARVE_FILE}: {_why(exc)}")
+        if unlogged and bone.behind_since is None:
+            bone.behind_since = now
+        carve = bone.carve
+        state = JournalState(
+            bone.log_id, now, take.bone_version,
+            {str(k): float(v) for k, v in enumerate(take.removed) if v},
+            first + len(rows),
+            {"bytes": carve.size, "records": carve.records, "bricks": carve.bricks,
+             "version": carve.version, "contacts": carve.contacts},
+            unlogged, bone.behind_since, "; ".join(problems) or None)
+        if bone.started:
+            try:
+                if bone.state_made:
+                    bone.state.write(state)
+                else:
+                    bone.state.create(state)
+                    bone.state_made = True
+            except OSError as exc:
+                problems.append(f"{STATE_FILE}: {_why(exc)}")
+        return problems
 
     def folders(self) -> list[Path]:
         """The journal's session folders (named by session id)."""
         if not self.root.is_dir():
             return []
         return [p for p in self.root.iterdir() if p.is_dir() and p.name.isdigit()]
+
+    def kept_aside(self) -> list[dict]:
+        """Session folders a resume could not use, kept for a human (``<id>.failed-…``,
+        relative to the data directory), and why."""
+        if not self.root.is_dir():
+            return []
+        out = []
+        # This start's reasons first: a WHY.txt may not have fitted a full disk.
+        known = {Path(q.folder).name: q.reason for q in self.resumed.quarantined}
+        for p in sorted(self.root.iterdir()):
+            if not (p.is_dir() and ".failed-" in p.name):
+                continue
+            if p.name in known:
+                self._reasons[p.name] = known[p.name]
+            if p.name not in self._reasons:
+                try:
+                    self._reasons[p.name] = (p / "WHY.txt").read_text().strip()
+                except OSError:
+                    self._reasons[p.name] = "unknown (no WHY.txt)"
+            out.append({"folder": in_data_dir(self.plane.data_dir, p),
+                        "session": p.name.split(".", 1)[0],
+                        "reason": self._reasons[p.name]})
+        return out
+
+    # -- health and metrics -------------------------------------------------------------------
+    def public(self) -> dict:
+        """``/v1/health``'s ``journal``: ok or degraded (which sessions, why, since when),
+        what this start's resume lost, the session folders kept aside."""
+        sessions = list(self.plane.sessions.values())
+        degraded = sorted(s.id for s in sessions if s.journal.state == "degraded")
+        since = [s.journal.failing_since_s for s in sessions if s.journal.failing_since_s]
+        return {
+            "state": "degraded" if degraded else "ok",
+            "degraded_sessions": degraded,
+            "error": next((s.journal.error for s in sessions if s.journal.error), None),
+            "failing_since": min(since) if since else None,
+            "passes": self.passes,
+            "recovered": [r.as_dict() for r in self.resumed.recoveries],
+            "quarantined": self.kept_aside(),
+        }
+
+    def collect(self):  # the prometheus_client collector protocol
+        sessions = sorted(self.plane.sessions.values(), key=lambda s: s.id)
+        up = GaugeMetricFamily("burrforce_journal_up", "1 while every session's journal is "
+                               "written, 0 while one cannot be (degraded)")
+        up.add_metric([], 0.0 if any(s.journal.state == "degraded" for s in sessions)
+                      else 1.0)
+        failures = CounterMetricFamily("burrforce_journal_write_failures", "Session journal "
+                                       "passes that could not write everything")
+        failures.add_metric([], self.errors)
+        degraded = GaugeMetricFamily("burrforce_journal_degraded", "1 while the session's "
+                                     "journal cannot be written", labels=["session"])
+        lost = GaugeMetricFamily("burrforce_journal_lost_mm3", "Carving the session's resume "
+                                 "could not bring back from its journal, mm³",
+                                 labels=["session"])
+        for s in sessions:
+            degraded.add_metric([str(s.id)], 1.0 if s.journal.state == "degraded" else 0.0)
+            if s.journal.recovery is not None:
+                lost.add_metric([str(s.id)], s.journal.recovery["removed_mm3"])
+        kept = GaugeMetricFamily("burrforce_journal_quarantined", "Journaled sessions that "
+                                 "could not be resumed, kept aside")
+        kept.add_metric([], len(self.kept_aside()))
+        yield from (up, failures, degraded, lost, kept)
+
+
+def _why(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+def resume(plane: ControlPlane, journal: Journal, say: Callable[[str], None]) -> list[int]:
+    """Create every journaled session again, carving and all (``journal_resume``); returns
+    the ids resumed. Never raises."""
+    journal.resumed = resume_sessions(plane, journal.root, journal.adopt, say)
+    return journal.resumed.ids
 
 
 def discard(data_dir: Path) -> int:
@@ -199,80 +341,3 @@ def discard_session(data_dir: Path, session_id: int) -> bool:
     shutil.rmtree(folder, ignore_errors=True)
     return existed
 
-
-def resume(plane: ControlPlane, journal: Journal, say: Callable[[str], None]) -> list[int]:
-    """Create every journaled session again, carving and all; returns the ids resumed.
-
-    Sessions whose journal cannot be used (a source that is gone, a damaged file) are
-    reported and their journal is kept aside as ``<id>.failed-<time>`` for a human to
-    look at, never silently dropped."""
-    root = journal.root
-    if not root.is_dir():
-        return []
-    resumed = []
-    for folder in sorted(journal.folders(), key=lambda p: int(p.name)):
-        path = folder / SESSION_FILE
-        try:
-            age_days = (time.time() - path.stat().st_mtime) / 86400
-        except FileNotFoundError:
-            shutil.rmtree(folder, ignore_errors=True)  # a session that never got ready
-            continue
-        if age_days > MAX_AGE_DAYS:
-            say(f"journal: session {folder.name} unused for {age_days:.0f} days: discarded")
-            shutil.rmtree(folder, ignore_errors=True)
-            continue
-        try:
-            sid, carved = _resume_one(plane, journal, folder)
-        except (ApiError, SourceError, ValueError, KeyError, TypeError, OSError) as exc:
-            reason = exc.detail if isinstance(exc, ApiError) else str(exc)
-            aside = folder.with_name(f"{folder.name}.failed-{time.strftime('%Y%m%d-%H%M%S')}")
-            folder.rename(aside)
-            say(f"journal: session {folder.name} could not be resumed ({reason}); its "
-                f"journal is kept in {aside}")
-            continue
-        resumed.append(sid)
-        say(f"journal: resumed session {sid} ({carved} carved brick(s) replayed)")
-    return resumed
-
-
-def _resume_one(plane: ControlPlane, journal: Journal, folder: Path) -> tuple[int, int]:
-    record = json.loads((folder / SESSION_FILE).read_text())
-    if record.get("format") != FORMAT or record.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"not a {FORMAT} v{FORMAT_VERSION} record")
-    if record["key_hex"] is None and not is_loopback(plane.config.host):
-        raise ValueError(f"it has no key, and this server listens on {plane.config.host}, "
-                         "which other machines reach (keyless sessions are for loopback)")
-    sid = int(record["id"])
-    src = record["source"]
-    if src["source"].startswith("file:"):
-        source = file_source(src["source"], Path(src["path"]), src["kind"])
-    else:
-        source = plane.resolve(src["source"], src["kind"], src["voxel_mm"],
-                               tuple(src["spacing_mm"]) if src["spacing_mm"] else None)
-    index, version, swept = read_log(folder / CARVE_FILE)
-    carved = {"since": 0}
-
-    def prepare(session: ManagedSession) -> None:
-        session.primary_label = record["primary_label"]
-        session.overrides = {(None if k == "primary" else int(k)): v
-                             for k, v in record["overrides"].items()}
-        session.calibrations = {int(k): v for k, v in record["calibrations"].items()}
-        session.created_s = float(record["created"])
-        if record.get("next_stream"):
-            session.next_stream = next_stream_after(int(record["next_stream"]))
-
-        def replay(bone) -> None:
-            apply_log(bone.grid, index, version, swept)
-            carved["since"] = int(version.max()) if len(version) else 0
-        session.pending_carve = replay
-
-    session, job = plane.create_session(
-        sid, source, Parameters(**record["parameters"]), Features(**record["features"]),
-        authenticated=record["key_hex"] is not None, key_hex=record["key_hex"],
-        prepare=prepare, worker=record.get("worker"))
-    plane.wait(job)
-    if session.state != "ready":
-        plane.delete_session(sid)
-        raise ValueError(session.error or "the bone did not load")
-    journal.adopt(sid, session.ref, carved["since"])
-    return sid, len(index)

@@ -27,6 +27,7 @@ from ..bone import Bone
 from ..bone.engine import check_burr
 from ..bone.loaders import BoneFileError
 from ..bone.shared import SharedBone, SharedBoneRef, publish
+from ..bone.tally import CarveTally
 from .errors import ApiError, Conflict, Gone, Invalid
 from .generation import next_generation
 from .jobs import Job, JobTable
@@ -98,11 +99,12 @@ class BoneLoads:
             except ValueError as exc:
                 raise Invalid(str(exc)) from None
             carve, session.pending_carve = session.pending_carve, None
+            tally = None
             if carve is not None:
                 job.stage = "replaying the journal"
-                carve(bone)
+                tally = carve(bone)  # the removal and contacts the journal kept
             job.stage = "sharing"
-            ref = self._publish(session, bone)
+            ref = self._publish(session, bone, tally)
             del bone
             job.stage = "starting"
             self._install(session, ref, source)
@@ -120,11 +122,12 @@ class BoneLoads:
             job.finished_s = time.time()
             job.finished.set()
 
-    def _publish(self, session: ManagedSession, bone: Bone) -> SharedBoneRef:
+    def _publish(self, session: ManagedSession, bone: Bone,
+                 tally: CarveTally | None = None) -> SharedBoneRef:
         with self._counter_lock:
             self._file_counter += 1
             name = f"session-{session.id}-{self._file_counter}.bone"
-        return publish(bone, self.run_dir, name)
+        return publish(bone, self.run_dir, name, tally)
 
     def _install(self, session: ManagedSession, ref: SharedBoneRef,
                  source: BoneSource) -> None:

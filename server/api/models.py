@@ -371,6 +371,22 @@ class Endpoint(Answer):
     port: int
 
 
+class JournalView(Answer):
+    """A session's journal: whether the last pass wrote everything, and what the last
+    restart lost if its journal was damaged or behind."""
+
+    state: Literal["off", "ok", "degraded"] = Field(
+        description="off (no journal), ok, or degraded: it cannot be written (a full disk), "
+                    "so a restart now would lose the carving since failing_since")
+    written: float | None = Field(description="when a pass last wrote everything, Unix time, s")
+    failing_since: float | None = Field(description="when the passes began to fail, Unix "
+                                                    "time, s")
+    error: str | None
+    recovery: dict[str, Any] | None = Field(
+        description="what resuming this session lost (bricks, removed_mm3, contacts, "
+                    "summary, the damaged files kept); null: nothing")
+
+
 class SessionView(Answer):
     """A session: its state, UDP endpoint, bone and what it renders."""
 
@@ -391,6 +407,8 @@ class SessionView(Answer):
     device_attached: bool
     recording: str | None
     created: float = Field(description="Unix time, s")
+    journal: JournalView = Field(description="how its journal stands: ok, degraded (cannot "
+                                             "be written) or off, and what a restart lost")
 
 
 class SessionCreated(SessionView):

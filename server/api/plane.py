@@ -183,9 +183,10 @@ class ControlPlane:
                                else self.pool.place(others))
         return base, self.loads.submit(base, "create", bone)
 
-    def delete_session(self, session_id: int) -> None:
+    def delete_session(self, session_id: int, keep_journal: bool = False) -> None:
         """Remove the session: its device zeroed, its recording closed, the loop's session
-        removed, its journal and its bone freed (NotFound)."""
+        removed, its journal (unless ``keep_journal``: a resume that failed keeps it for a
+        human) and its bone freed (NotFound)."""
         session = self.get(session_id)
         self.devices.discard(session_id)  # its device is zeroed before the session goes
         with session.lock:
@@ -199,7 +200,8 @@ class ControlPlane:
 
             self.sessions.remove(session_id, then=forget)
             # Now, not at the journal's next pass: a stop meanwhile must not resume it.
-            shutil.rmtree(journal_dir(self.data_dir) / str(session_id), ignore_errors=True)
+            if not keep_journal:
+                shutil.rmtree(journal_dir(self.data_dir) / str(session_id), ignore_errors=True)
             try:
                 if session.in_loop:
                     session.in_loop = False

@@ -163,8 +163,10 @@ def get_state(request: Request, plane: PlaneDep, session_id: int = SessionPath,
               max_events: int = Query(100, ge=0, le=10_000)) -> dict:
     """Bone version, removed volume per material, forbidden-contact events (the latest
     ``max_events``), counters, tick-time quantiles and the haptic output (coupling stiffness
-    and damping in use, the passivity observer's energy, the proxy)."""
+    and damping in use, the passivity observer's energy, the proxy) and how its journal
+    stands (``journal``: as in the session's view)."""
     state = plane.session_state(session_id, max_events)
+    state["journal"] = plane.get(session_id).journal.view()
     latest = request.app.state.stats.latest
     if latest and session_id in latest["sessions"]:
         s = latest["sessions"][session_id]

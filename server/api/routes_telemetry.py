@@ -83,7 +83,7 @@ def telemetry(request: Request, plane: PlaneDep, session_id: int = SessionPath) 
 def live_report(plane: ControlPlane, session_id: int, threshold_N: float) -> SessionReport:
     """``session_id``'s report: its telemetry history (``plane.history``) with its engine's
     removed volume and forbidden contacts (the loop's ``session_state``)."""
-    plane.ready(session_id)
+    session = plane.ready(session_id)
     _require_telemetry(plane)
     state = plane.session_state(session_id, REPORT_MAX_EVENTS)
     # The history after the state: its last sample is then no older than the state's events.
@@ -91,7 +91,7 @@ def live_report(plane: ControlPlane, session_id: int, threshold_N: float) -> Ses
     return report_from_live(
         session_id, h.t_s, h.status, h.hand_force_N, state.get("removed_mm3") or {},
         state.get("events") or [], threshold_N, hz=h.hz, installs=h.installs,
-        dropped=h.dropped, wall_offset_s=h.wall_offset_s)
+        dropped=h.dropped, wall_offset_s=h.wall_offset_s, more_notes=session.journal.notes())
 
 
 @router.get("/sessions/{session_id}/report", tags=["sessions"], responses=REPORT_RESPONSES)
@@ -108,7 +108,8 @@ def session_report(plane: PlaneDep, session_id: int = SessionPath,
     telemetry (``api.history``), not taken from every packet: a 1 kHz stream's ticks between
     samples are not seen (a peak shorter than 10 ms may be missed). The history keeps the
     last 2 h. The removed volume per material and the forbidden contacts are the session
-    engine's own, exact, counted since the hot loop or the bone was last (re)started. The
+    engine's own, exact, counted since the bone was loaded (kept across restarts of the hot
+    loop and of ``serve``; a resume from a damaged journal says what it lost). The
     report's ``notes`` say all of this. 404: no such session; 409: not ready; 422: a bad
     threshold; 503: no live telemetry on this server."""
     report = live_report(plane, session_id, threshold_n)

@@ -22,11 +22,13 @@ from typing import TypeVar
 from ..bone import Bone, MaterialTable, ShaftParams
 from ..bone.grid import BoneGrid
 from ..bone.shared import SharedBone, SharedBoneRef
+from ..bone.tally import CarveTally
 from ..haptics import DeviceProfile, HapticsConfig
 from ..hotloop import SessionConfig
 from ..model.params import CuttingParams
 from ..model.vibration import VibrationParams
 from .errors import Busy, Conflict, Invalid, NotFound, Unavailable
+from .journal_status import JournalStatus
 from .models import Features
 from .sources import BoneSource
 
@@ -108,8 +110,10 @@ class ManagedSession:
     #: The first stream number the next hot loop offers (None: a random one).
     next_stream: int | None = None
     #: Applied once to the next bone loaded, before it is shared: a resumed session's
-    #: carving (``journal``).
-    pending_carve: Callable[[Bone], None] | None = None
+    #: carving (``journal``); what it returns is the bone's tally (``bone.tally``).
+    pending_carve: Callable[[Bone], CarveTally | None] | None = None
+    #: How its journal stands (written, degraded, what a resume lost).
+    journal: JournalStatus = field(default_factory=JournalStatus)
     #: What the hot loop was last sent (params, shaft, config, publish).
     sent: dict = field(default_factory=dict)
     #: Calibrations applied over REST: material label → the latest record.

@@ -86,7 +86,7 @@ class ServerStack:
                 self.journal = Journal(plane, lambda sid: stats.next_streams().get(sid))
                 self.resumed = resume(plane, self.journal, self.say or log.info)
                 self.journal.start()
-            app = create_app(plane, self.token, self.stats, self.supervisor)
+            app = create_app(plane, self.token, self.stats, self.supervisor, self.journal)
             self.server = uvicorn.Server(uvicorn.Config(
                 app, host=self.config.host, port=self.config.http_port, log_level="warning",
                 access_log=False, timeout_graceful_shutdown=5))

@@ -32,6 +32,7 @@ def session_view(s: ManagedSession, address: tuple[str, int] | None, device_atta
         "device_attached": device_attached,
         "recording": s.recording["name"] if s.recording else None,
         "created": s.created_s,
+        "journal": s.journal.view(),
     }
     if key:
         view["key"] = s.key_hex

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +34,7 @@ from .history import BurrPath
 from .materials import N_LABELS, MaterialTable
 from .seqlock import header_address, read_version, write_begin, write_end
 from .shaft import N_SHAFT, SHAFT_DEPTH, SHAFT_FORCE, SHAFT_TORQUE, SHAFT_VOLUME
+from .tally import CarveTally, ForbiddenContact
 from .tick import bone_tick, removed_mm3
 from .tick_tables import RevolvedTables, RevolvedTick, SphereTick
 from .voxels import coverage_cache_shape
@@ -117,16 +117,6 @@ def check_burr(spacing_mm: np.ndarray, params: CuttingParams, shaft: ShaftParams
 
 
 @dataclass(frozen=True)
-class ForbiddenContact:
-    """The burr touched a forbidden structure (recorded when contact begins)."""
-
-    time_s: float
-    position_mm: tuple[float, float, float]
-    label: int
-    material: str
-
-
-@dataclass(frozen=True)
 class BoneTickResult:
     """One tick. Vectors are float64 arrays of shape (3,) in the world frame.
 
@@ -172,7 +162,9 @@ class BoneEngine:
         params: burr and spindle parameters.
         shaft: shaft geometry; ``ShaftParams(length_mm=0)`` turns it off.
         n_theta, n_phi, refine: burr resolution (see ``BurrGrid``).
-        max_events: forbidden-contact events kept (oldest dropped first).
+        max_events: forbidden-contact events kept (oldest dropped first) in a private tally.
+        tally: where the removed volume and the forbidden contacts are counted (``tally``):
+            a shared bone's own, so that they survive the engine; default a private one.
     """
 
     def __init__(
@@ -185,6 +177,7 @@ class BoneEngine:
         n_phi: int | None = None,
         refine: int = VOXEL_REFINE,
         max_events: int = 10_000,
+        tally: CarveTally | None = None,
     ) -> None:
         load_kernels()
         self.grid = grid
@@ -211,8 +204,10 @@ class BoneEngine:
         self.touch = np.zeros(N_TOUCH)
         self._touched = np.zeros((N_LABELS, 4))
         self._removed_tick = np.zeros(N_LABELS)
-        self._removed_total = np.zeros(N_LABELS)
-        self.events: deque[ForbiddenContact] = deque(maxlen=max_events)
+        #: Removal since the bone was loaded and the forbidden contacts begun: they outlive
+        #: this engine when the tally is the shared bone's.
+        self.tally = tally if tally is not None else CarveTally.private(max_events)
+        self._removed_total = self.tally.removed
         self._touching: frozenset[int] = frozenset()
         self.ticks = 0
         #: Stamps the coverage cache: one per kernel call, never reused.
@@ -538,10 +533,14 @@ class BoneEngine:
         now_touching = frozenset(int(x) for x in np.flatnonzero(self._touched[:, 0]))
         for label in sorted(now_touching - self._touching):
             position = self.grid.to_world_point(self._touched[label, 1:4])
-            self.events.append(ForbiddenContact(
-                now, tuple(float(x) for x in position), label,  # type: ignore[arg-type]
-                self.materials.name_of(label)))
+            self.tally.add_contact(now, tuple(float(x) for x in position),  # type: ignore
+                                   label)
         self._touching = now_touching
+
+    @property
+    def events(self) -> list[ForbiddenContact]:
+        """The forbidden contacts kept, oldest first (``tally.begun`` counts them all)."""
+        return self.tally.latest(None, self.materials.name_of)
 
     # -- totals -----------------------------------------------------------------------------
     def removed_this_tick_mm3(self) -> float:
@@ -555,7 +554,8 @@ class BoneEngine:
         return self.grid.voxel_volume_mm3 / (255.0 * 255.0)
 
     def removed_mm3_by_material(self) -> dict[str, float]:
-        """Bone removed since the engine was made, mm³ per material name."""
+        """Bone removed since the bone was loaded, mm³ per material name (since the engine
+        was made, with a private tally)."""
         return {self.materials.name_of(label): float(v) * self._mm3_per_unit
                 for label, v in enumerate(self._removed_total) if v > 0.0}
 

@@ -342,8 +342,10 @@ def _resumed_default(say, session, source, frame: str | None, key_hex: str | Non
     """The default session came back from the journal: say so, and what of the command line
     it does not follow (the journal wins: a restart must not throw away a trainee's carving
     unless asked to)."""
+    lost = session.journal.recovery
     say(f"session {session.id} resumed from the journal: bone {session.source.source}, "
-        "carving and key as they were")
+        + ("carving and key as they were" if lost is None else
+           f"key as it was, carving up to its journal's last good records ({lost['summary']})"))
     differs = []
     if session.source.source != source.source:
         differs.append(f"--bone {source.source}")

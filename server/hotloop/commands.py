@@ -107,7 +107,8 @@ def _session_state(ctx: CommandContext, kwargs: dict) -> dict:
     with ctx.lock:
         session = _session(ctx.dispatcher, kwargs["session_id"])
         n = int(kwargs.get("max_events", 100))
-        events = list(session.engine.events)[-n:] if n > 0 else []
+        engine = session.engine
+        events = engine.tally.latest(n, engine.materials.name_of) if n > 0 else []
         stats = session.stats()
         stats["haptics"] = session.haptics.snapshot()
         # When the counters were read, on the loop's clock: a rate from two states is then

@@ -571,7 +571,7 @@ class Session:
             **self.counters,
             "bone_version": self.engine.grid.version,
             "removed_mm3": self.engine.removed_mm3_by_material(),
-            "forbidden_events": len(self.engine.events),
+            "forbidden_events": self.engine.tally.begun,
             "last_force_N": self.last_force_N,
             "ticks_timed": self.ticks_timed,
             "tick_epoch": self.tick_epoch,

@@ -85,9 +85,14 @@ def build_session(spec: SessionSpec) -> Session:
     Raises:
         ValueError: a bad bone, burr, key or stream number.
     """
-    bone = load_session_bone(spec)
+    if isinstance(spec.bone, SharedBoneRef):
+        # The shared bone's own tally: removal and contacts survive this loop.
+        shared = SharedBone(spec.bone, writable=True)
+        bone, tally = shared.bone(), shared.tally
+    else:
+        bone, tally = load_session_bone(spec), None
     materials = spec.materials if spec.materials is not None else bone.materials
-    engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft)
+    engine = BoneEngine(bone.grid, materials, spec.params, spec.shaft, tally=tally)
     telemetry = TelemetrySlot(spec.telemetry) if spec.telemetry is not None else None
     session = Session(spec.session_id, engine, spec.config, spec.key,
                       next_stream=spec.next_stream, telemetry=telemetry)

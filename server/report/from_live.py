@@ -23,6 +23,7 @@ def report_from_live(
     installs: np.ndarray | None = None,
     dropped: int = 0,
     wall_offset_s: float | None = None,
+    more_notes: Iterable[str] = (),
 ) -> SessionReport:
     """Report on a live session from its sampled history (``api.history``) and its state
     (``/state``: the engine's removed volume per material and forbidden-contact events).
@@ -31,13 +32,14 @@ def report_from_live(
         t_s: sample times on the server's monotonic clock, s, (n,), non-decreasing.
         status: STATUS_* bits per sample, (n,).
         hand_force_N: |force| the hand got per sample, N, (n,).
-        removed_mm3_by_material: mm³ per material since the session's engine was built.
+        removed_mm3_by_material: mm³ per material since the session's bone was loaded.
         events: ``/state``'s ``events``: ``time_s`` (monotonic clock, s), ``label``,
             ``material``, ``position_mm``.
         hz: the history's sampling rate, Hz.
         installs: the install each sample was answered by, (n,).
         dropped: samples older than the history's window.
         wall_offset_s: ``time.time() − time.monotonic()``, for ``started_at``.
+        more_notes: notes from elsewhere (the session journal's state).
 
     Raises:
         ValueError: a bad threshold, or arrays of different lengths.
@@ -62,12 +64,13 @@ def report_from_live(
         if changes.size:
             at = float(t_abs[changes[-1]] - t0)
             notes.append(f"the hot loop restarted or the bone was reloaded at {at:.1f} s "
-                         f"({changes.size} time(s)): the removed volumes and forbidden "
-                         "contacts count from the last of these")
+                         f"({changes.size} time(s)): a restart keeps the removed volumes "
+                         "and forbidden contacts, a new bone starts them over")
     contacts = [ForbiddenContact.from_event(float(e["time_s"]) - t0, e) for e in events]
     early = sum(c.time_s < 0.0 for c in contacts)
     if early:
         notes.append(f"{early} forbidden contact(s) precede the history (negative times)")
+    notes.extend(more_notes)
     started = None
     if n and wall_offset_s is not None:
         started = datetime.fromtimestamp(t0 + wall_offset_s, UTC).isoformat(
