@@ -27,11 +27,12 @@ only what the damaged bytes held. The bytes skipped are reported (``LogScan.dama
 
 from __future__ import annotations
 
-import os
 import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from ..whole_files import WholeFile
 
 FILE_MAGIC = b"BFJL"
 FILE_VERSION = 2
@@ -154,22 +155,10 @@ def read_bytes(path: Path) -> bytes:
 
 def write_atomic(path: Path, data: bytes, mode: int = 0o600) -> None:
     """Replace ``path`` with ``data`` so that a crash leaves the old or the new file, never
-    a mix (write a temporary file, fsync it, rename it over, fsync the folder). A write that
-    fails (a full disk) removes its temporary file and leaves ``path`` as it was."""
+    a mix (``whole_files.WholeFile``: a temporary file, fsync, rename, the folder synced). A
+    write that fails (a full disk: ``DiskFull``) removes its temporary file and leaves
+    ``path`` as it was. The temporary name is fixed (``NAME.tmp``): one writer per journal
+    file, and a crash's leftover is overwritten by the next write rather than piling up."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    with WholeFile(path, permissions=mode, part_name=path.name + ".tmp") as f:
+        f.write(data)
