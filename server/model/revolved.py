@@ -15,10 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .burr import DEFAULT_REFINE
-from .cutting import CuttingResult, check_pose, result_from_out
 from .kernels import new_buffer, new_scratch
 from .kernels_revolved import cut_flat_revolved
 from .params import CuttingParams
+from .pose import check_pose
+from .result import CuttingResult, result_from_out
 from .shapes import Burr, Line
 from .workpiece import FlatWorkpiece
 
@@ -110,7 +111,8 @@ class RevolvedGrid:
 class RevolvedModel:
     """The cutting force of one burr of any shape against a flat workpiece (the thesis's).
 
-    Owns the grid and preallocated buffers, like :class:`~.cutting.CuttingModel`; the
+    Owns the grid and preallocated buffers, like ``cutting.CuttingModel`` (which hands a shaped
+    burr on a flat workpiece to this class); the
     ``params`` give Us, K, the spin and the minimum cutting speed (their ``radius_mm`` is not
     used: the shape has its own sizes). Positions are the burr's reference centre.
     """
@@ -140,5 +142,5 @@ class RevolvedModel:
 
     def evaluate(self, centre_mm: object, axis: object, feed_mm_s: object,
                  rpm: float) -> CuttingResult:
-        """As :meth:`~.cutting.CuttingModel.evaluate`, ``centre_mm`` the reference centre."""
+        """As ``CuttingModel.evaluate``, ``centre_mm`` the reference centre."""
         return result_from_out(self.evaluate_raw(*check_pose(centre_mm, axis, feed_mm_s, rpm)))
