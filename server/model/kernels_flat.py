@@ -82,14 +82,17 @@ def positive_mean(x, half_a, half_b):
         return x
     if x <= -reach:
         return 0.0
-    y = -abs(x)  # G(x) = x + G(−x): work on the lower half
-    if half_b <= 1e-12 * half_a:
-        low = (y + half_a) ** 2 / (4.0 * half_a)
-    elif y <= half_b - half_a:
-        low = (y + reach) ** 3 / (24.0 * half_a * half_b)
+    # G(x) = x + G(−x): the lower half, in units of A (|x| < 2A here, so tiny elements
+    # cannot underflow A·B, as in box_fraction).
+    y = -abs(x) / half_a
+    r = half_b / half_a
+    if r <= 1e-12:
+        low = 0.25 * (y + 1.0) ** 2
+    elif y <= r - 1.0:
+        low = (y + 1.0 + r) ** 3 / (24.0 * r)
     else:
-        low = (half_b * half_b / (3.0 * half_a) + 0.5 * (y + half_a - half_b)
-               + (y * y - (half_a - half_b) ** 2) / (4.0 * half_a))
+        low = r * r / 3.0 + 0.5 * (y + 1.0 - r) + 0.25 * (y * y - (1.0 - r) ** 2)
+    low *= half_a
     return low + x if x > 0.0 else low
 
 
