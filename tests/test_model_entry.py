@@ -101,7 +101,7 @@ class _RoundOnly(Workpiece):
 
 def test_a_shaped_burr_on_another_workpiece_is_refused_by_name():
     params = CuttingParams(burr=Burr(Cylinder(1.0, 4.0)))
-    with pytest.raises(ValueError, match=r"cylinder burr on a FlatWorkpiece only.*"
+    with pytest.raises(ValueError, match=r"abrasive cylinder burr on a FlatWorkpiece only.*"
                                          r"RevolvedModel.*BoneEngine"):
         CuttingModel(params, _RoundOnly())
     model = CuttingModel(CuttingParams(), _RoundOnly())  # the round abrasive burr is fine

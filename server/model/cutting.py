@@ -29,8 +29,9 @@ class CuttingModel:
 
     The burr is ``params.shape``. A round abrasive burr integrates on the sphere's grid; any
     other burr (``params.burr``: a cylinder, a barrel, a fluted burr) is computed by a
-    :class:`~.revolved.RevolvedModel` on the flat workpiece with ``n_theta·n_phi`` elements
-    (the default 24 × 48 is its default 1152), so both classes give the same results for it.
+    :class:`~.revolved.RevolvedModel` on the flat workpiece with about ``n_theta·n_phi``
+    elements (its own near-square layout; the default 24 × 48 is its default 1152) and the
+    same ``refine``, so both classes give the same results for it.
 
     Args:
         params: model parameters (Us, K, R, spin, minimum cutting rpm, burr).
@@ -68,8 +69,9 @@ class CuttingModel:
         """The model computing ``burr`` (``params.burr``), rebuilt when the burr, K or the
         resolution changes; it always runs with the current params and workpiece."""
         if not isinstance(self.workpiece, FlatWorkpiece):
+            kind = f"{type(burr.cutter).__name__.lower()} {burr.shape.kind}"
             raise ValueError(
-                f"CuttingModel computes a {burr.shape.kind} burr on a FlatWorkpiece only (by "
+                f"CuttingModel computes a {kind} burr on a FlatWorkpiece only (by "
                 f"RevolvedModel); {type(self.workpiece).__name__} takes the round abrasive "
                 "burr: on a voxel bone, use bone.BoneEngine with these params")
         n_elements = self.grid.n_theta * self.grid.n_phi
