@@ -11,6 +11,7 @@ from hypothesis_profiles import examples
 
 from burrforce.server.model import CuttingModel, CuttingParams, FlatWorkpiece
 from burrforce.server.model.kernels import box_fraction
+from burrforce.server.model.kernels_flat import positive_mean
 
 MODEL = CuttingModel(CuttingParams(min_cutting_rpm=1000.0), n_theta=16)
 finite = st.floats(-50.0, 50.0, allow_nan=False, allow_infinity=False)
@@ -97,3 +98,23 @@ def test_box_fraction_is_the_exact_area_fraction(g0, a, b):
     w = (np.arange(n) + 0.5) / n * 2 * b - b
     sampled = float(np.mean(g0 + u[:, None] + w[None, :] > 0.0))
     assert abs(box_fraction(g0, a, b) - sampled) < 6.0 / n
+
+
+@given(x=st.floats(-3.0, 3.0), a=st.floats(0.01, 1.0), b=st.floats(0.0, 1.0))
+@example(x=0.0, a=5e-324, b=5e-324)  # subnormal sides: A·B would underflow
+@example(x=1e-194, a=3e-193, b=2e-193)
+@settings(max_examples=examples(60), deadline=None)
+def test_positive_mean_is_the_mean_of_the_positive_part(x, a, b):
+    # The facing share of an element the facing edge crosses (kernels_flat.positive_mean):
+    # the integral of box_fraction, E[max(x + u + v, 0)], never below max(x, 0) or above it
+    # by more than (A + B)/2.
+    g = positive_mean(x, a, b)
+    assert max(x, 0.0) <= g <= max(x, 0.0) + 0.5 * (a + b) + 1e-300
+    if a < 0.01:
+        return
+    n = 400
+    u = (np.arange(n) + 0.5) / n * 2 * a - a
+    w = (np.arange(n) + 0.5) / n * 2 * b - b
+    sampled = float(np.mean(np.maximum(x + u[:, None] + w[None, :], 0.0)))
+    assert abs(g - sampled) < 1e-4
+    assert positive_mean(x, b, a) == g

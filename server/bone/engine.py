@@ -10,12 +10,6 @@ import numpy as np
 
 from ..hot_kernel import DirectCall
 from ..model.burr import DEFAULT_N_THETA, BurrGrid
-from ..model.cutting import (
-    RPM_TO_RAD_S,
-    CuttingResult,
-    check_pose,
-    result_from_out,
-)
 from ..model.kernels import (
     ACC_JACOBIAN,
     OUT_FORCE,
@@ -25,6 +19,8 @@ from ..model.kernels import (
     new_scratch,
 )
 from ..model.params import CuttingParams
+from ..model.pose import RPM_TO_RAD_S, check_pose
+from ..model.result import CuttingResult, result_from_out
 from ..model.shapes import Abrasive, Burr, Fluted, Sphere
 from .bricks import BRICK, LABEL_WORDS, forbidden_bricks, forbidden_from_labels
 from .carve import N_TOUCH, TOUCH_FORBIDDEN

@@ -44,6 +44,59 @@ WHOLE_FROM = 0.75
 
 
 @hot_kernel
+def add_removal_correction(acc, dv, us, abs_omega, spin_sign):
+    """Move an element's removal rate by ``dv`` (mm³/s) from its midpoint value toward its
+    exact integral over the element, in the tool-frame ``acc``; the spindle power (Us·dv) and
+    the reaction torque along the axis (−sgn(ω)·Us·dv/|ω|) move with it, so P = Us × removal
+    and P = −T·Ω stay exact. The force keeps the midpoint rule, whose error is smaller: its
+    weight dA/|v_t| has no ρ, and ρ·(n·v_f) is what curves near a pole and across a rim."""
+    acc[7] += dv
+    acc[6] += us * dv
+    acc[5] -= spin_sign * us * dv / abs_omega
+
+
+@hot_kernel
+def facing_share(vn, vary):
+    """How much of an element's removal correction applies: 1 where n·v_f (``vn`` at its
+    centre, mm/s) keeps its sign across it (varies by less than ``vary``), falling smoothly to 0
+    at vn = 0, where the exact integral would count the part facing away, and the element
+    leaves the cut without a step."""
+    if vn >= vary:
+        return 1.0
+    if vn <= 0.0:
+        return 0.0
+    x = vn / vary
+    return x * x * (3.0 - 2.0 * x)
+
+
+@hot_kernel
+def positive_mean(x, half_a, half_b):
+    """E[max(x + u + v, 0)] for u, v uniform on [−A, A] and [−B, B]: the mean over an element
+    of the positive part of a quantity linear across it (``x`` at its centre, half-ranges A and
+    B). Its derivative in x is ``box_fraction``; it tends to max(x, 0) as the element shrinks.
+    """
+    if half_a < half_b:
+        half_a, half_b = half_b, half_a
+    reach = half_a + half_b
+    if x >= reach:
+        return x
+    if x <= -reach:
+        return 0.0
+    # G(x) = x + G(−x): the lower half, in units of A (|x| < 2A here, so tiny elements
+    # cannot underflow A·B, as in box_fraction).
+    y = -abs(x) / half_a
+    r = half_b / half_a
+    if r <= 1e-12:
+        low = 0.25 * (y + 1.0) ** 2
+    elif y <= r - 1.0:
+        low = (y + 1.0 + r) ** 3 / (24.0 * r)
+    else:
+        low = r * r / 3.0 + 0.5 * (y + 1.0 - r) + 0.25 * (y * y - (1.0 - r) ** 2)
+    low *= half_a
+    return low + x if x > 0.0 else low
+
+
+@hot_kernel
 def arc_moments(centre, half):
     """∫ of (1, cos φ, sin φ, cos²φ, sin²φ, cos φ·sin φ) dφ over [centre − half, centre + half]."""
     c2 = math.cos(2.0 * centre)
@@ -337,6 +390,11 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
     # would face the feed differently from the centre the whole element is judged by.
     speed = math.sqrt(v1 * v1 + v2 * v2 + v3 * v3)
     curve_v = 0.5 * speed * (0.5 * d_theta + 0.5 * d_phi) ** 2
+    # An element's removal integrated exactly: R²·dφ·(sinc·(v·e_ρ)·∫sin²θ dθ +
+    # v3·∫sin θ cos θ dθ) over its band (add_removal_correction).
+    sinc = math.sin(0.5 * d_phi) / (0.5 * d_phi)
+    sin_dt = math.sin(d_theta)
+    r2_dp = radius * radius * d_phi
     for kk in range(cos_p.shape[0]):
         cp = cos_p[kk]
         sp = sin_p[kk]
@@ -355,10 +413,28 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                 continue
             w_area = area_unit * st
             vn = st * vu + ct * v3
+            vary = (0.5 * d_theta * abs(ct * vu - st * v3)
+                    + 0.5 * d_phi * st * abs(-v1 * sp + v2 * cp) + curve_v)
+            exact_less_mid = 0.0
+            if cutting and vn > -vary:
+                # Where n·v_f keeps its sign across the element, its exact integral; where the
+                # facing edge crosses it, the centre decides, and its part facing the feed is
+                # the positive part of n·v_f linear across it (the midpoint counts all or none).
+                share = facing_share(vn, vary)
+                if share > 0.0:
+                    band_ss = 0.5 * d_theta - 0.5 * (ct * ct - st * st) * sin_dt  # ∫ sin²θ dθ
+                    band_sc = st * ct * sin_dt  # ∫ sin θ cos θ dθ
+                    exact_less_mid = (r2_dp * (sinc * vu * band_ss + v3 * band_sc)
+                                      - w_area * vn) * share
+                exact_less_mid += w_area * (positive_mean(
+                    vn, 0.5 * d_theta * abs(ct * vu - st * v3),
+                    0.5 * d_phi * st * abs(-v1 * sp + v2 * cp)) - max(vn, 0.0))
             if m == 1 or g0 >= reach:
                 frac = min(box_fraction(g0, half_a, half_b), cap_area / w_area)
                 cut_element(acc, frac, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega, k,
                             spin_sign, radius, cutting)
+                if exact_less_mid != 0.0 and frac > 0.0:
+                    add_removal_correction(acc, frac * exact_less_mid, us, abs_omega, spin_sign)
                 continue
             # The surface crosses this element and its trace is curved in (θ, φ): refine the
             # linear fraction and the centre-point integrand on m×m sub-elements.
@@ -366,9 +442,7 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
             # Sub-centres may face the feed where the centre does not, or not where it does:
             # then only the mean fraction, applied at the centre, grows steadily into the
             # centre-point value the element takes once it is wholly in bone.
-            straddles = cutting and abs(vn) < (0.5 * d_theta * abs(ct * vu - st * v3)
-                                               + 0.5 * d_phi * st * abs(-v1 * sp + v2 * cp)
-                                               + curve_v)
+            straddles = cutting and abs(vn) < vary
             count_before = acc[8]
             mean = 0.0
             for a in range(m):
@@ -390,6 +464,9 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                 if mean > 0.0:
                     cut_element(acc, mean, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega,
                                 k, spin_sign, radius, cutting)
+                    if exact_less_mid != 0.0:
+                        add_removal_correction(acc, mean * exact_less_mid, us, abs_omega,
+                                               spin_sign)
             elif mean > WHOLE_FROM:
                 # The m×m sub-centres integrate a whole element slightly differently from its
                 # centre, which it is integrated at once wholly in bone: shift the sum toward
@@ -407,6 +484,9 @@ def flat_grid(cos_t, sin_t, cos_p, sin_p, d_theta, d_phi, cos_sub_t, sin_sub_t, 
                                     spin_sign, radius, cutting)
                 cut_element(acc, shift, st, ct, cp, sp, vu, v3, w_force, w_area, abs_omega, k,
                             spin_sign, radius, cutting)
+                if exact_less_mid != 0.0:
+                    add_removal_correction(acc, shift * exact_less_mid, us, abs_omega,
+                                           spin_sign)
             if acc[8] > count_before:  # a refined element counts once
                 acc[8] = count_before + 1.0
 
@@ -417,9 +497,14 @@ def _sub_fraction(ct2, st2, cp2, sp2, s1, s2, s3, d0, radius, half_dt, half_dp, 
     """Bone fraction of one sub-element (centre (θ, φ) by cos and sin; extents half_dt,
     half_dp, mm; area_unit = R²·dθ·dφ of the sub-element, mm²)."""
     su2 = s1 * cp2 + s2 * sp2
-    g = d0 - radius * (st2 * su2 + ct2 * s3)
+    s_n = st2 * su2 + ct2 * s3
+    g = d0 - radius * s_n
     ha = half_dt * abs(ct2 * su2 - st2 * s3)
     hb = half_dp * st2 * abs(-s1 * sp2 + s2 * cp2)
     if g <= -(ha + hb + curve):
         return 0.0
+    # The depth's mean curvature term over the sub-element (g_θθ = R·s·n, g_φφ = R·sin θ·s·e_ρ
+    # per rad²): the shift of the linearized depth that is exact on average over where the
+    # surface's trace crosses it (kernels_revolved._sub_fraction).
+    g += (s_n * half_dt * half_dt + st2 * su2 * half_dp * half_dp) / (6.0 * radius)
     return min(box_fraction(g, ha, hb), cap_area / (area_unit * st2))
