@@ -505,8 +505,8 @@ def test_compressed_nrrd_that_inflates_past_its_header_is_refused(encoding, comp
 def test_gzip_that_hides_its_size_is_stopped_at_the_first_byte_too_many(tmp_path):
     """A trailer forged to agree with the header: the inflating stops one byte past it."""
     import gzip
-    header = ("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: gzip\n"
-              "space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\n").encode()
+    header = (b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: gzip\n"
+              b"space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\n")
     bomb = bytearray(gzip.compress(b"\0" * 50_000_000))
     bomb[-4:] = (8).to_bytes(4, "little")
     (tmp_path / "forged.nrrd").write_bytes(header + bytes(bomb))
