@@ -24,7 +24,7 @@ import numpy as np
 
 AIR_HU = -1000.0
 BONE_HU = 1200.0
-#: Values per slab while writing.
+#: Values per slab while writing (64 MiB of float64).
 SLAB_VALUES = 8 << 20
 SUFFIXES = {"nrrd": ".nrrd", "nifti": ".nii.gz"}
 

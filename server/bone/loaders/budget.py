@@ -17,9 +17,10 @@ from .errors import BoneFileError
 
 #: What a load may take beyond the bone it makes, by default: bytes.
 DEFAULT_WORK_BYTES = 512 << 20
-#: What the conversion holds besides the bone: a slab of source values, its native copy and
-#: the slab's two uint8 outputs, with room for the decompressor's buffers: bytes.
-STREAM_WORK_BYTES = 4 * (32 << 20)
+#: What the conversion holds besides the bone: a slab of source values (``slabs.SLAB_BYTES``),
+#: its native and scaled copies, the slab's two uint8 outputs and the decompressor's buffers,
+#: with room for the allocator's slack: bytes.
+STREAM_WORK_BYTES = 64 << 20
 
 
 def bone_bytes(shape: tuple[int, ...]) -> int:

@@ -225,7 +225,7 @@ class _Inflated:
     def readinto(self, view: memoryview) -> None:
         filled = 0
         while filled < len(view):
-            out = self._read(len(view) - filled)
+            out = self._read(min(len(view) - filled, CHUNK_BYTES))
             if not out:
                 self.done += filled
                 raise self._truncated()
