@@ -104,10 +104,13 @@ def to_bone(raw: RawVolume, options: LoadOptions, progress: Progress | None = No
         notes.append("the file's grid is left-handed: its first axis was flipped (the voxels "
                      "keep their positions)")
 
+    slices = source.shape[2]
+    plane = max(source.size // max(slices, 1), 1)
+
     def stage(name: str) -> Callable[[int, int], None]:
         def report(done: int, total: int) -> None:
-            if progress is not None:
-                progress(name, done, total)
+            if progress is not None:  # values done, counted in slices of the last axis
+                progress(name, done // plane, slices)
         return report
 
     kind = raw.kind if options.kind == "auto" else options.kind

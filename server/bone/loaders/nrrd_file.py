@@ -234,6 +234,6 @@ def _combine_segments(
             _, layer, value = segments[s]
             part[layers[layer] == value] = s + 1
         done += block.size
-        if progress is not None:
-            progress("reading", done, source.size)
+        if progress is not None:  # in slices of the last axis
+            progress("reading", done * shape[2] // source.size, shape[2])
     return values
