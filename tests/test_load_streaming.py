@@ -23,7 +23,7 @@ from burrforce.server.bone.loaders import (
     load_bone,
     slabs,
 )
-from burrforce.server.bone.loaders.budget import bone_bytes
+from burrforce.server.bone.loaders.budget import STREAM_WORK_BYTES, bone_bytes
 from burrforce.server.bone.phantoms import phantom
 
 SPACING = LoadOptions(spacing_mm=(0.5, 0.5, 0.5))
@@ -50,6 +50,17 @@ def test_any_slab_size_makes_the_same_bone(fmt, bone, tmp_path, monkeypatch):
     assert sliced.notes == whole.notes
     assert sum(whole.volumes_mm3().values()) == pytest.approx(
         sum(bone.volumes_mm3().values()), rel=0.05)
+
+
+def test_a_colour_stack_too_large_to_hold_is_decoded_again_for_each_pass(bone, tmp_path):
+    path = bone_files.write(bone, "png", tmp_path)
+    held = load_bone(path, LoadOptions(spacing_mm=(1.0, 1.0, 1.0)))
+    # Room for the bone and a slab, not for the stack's two decoded bytes a voxel.
+    tight = bone_bytes(held.grid.shape) + STREAM_WORK_BYTES + 1
+    again = load_bone(path, LoadOptions(spacing_mm=(1.0, 1.0, 1.0), memory_budget_bytes=tight))
+    np.testing.assert_array_equal(again.grid.density, held.grid.density)
+    np.testing.assert_array_equal(again.grid.labels, held.grid.labels)
+    assert [m.name for _, m in again.materials] == [m.name for _, m in held.materials]
 
 
 def test_fortran_and_c_ordered_npy_and_a_flipped_grid_read_alike(tmp_path, monkeypatch):

@@ -2,8 +2,8 @@
 
 A load holds the bone it makes — ``density`` and ``labels`` while converting, then the three
 bytes a voxel of the shared bone takes (``bone.shared``) — plus what it reads with: a slab of
-the file's values at a time (``slabs.SLAB_BYTES``), never the whole source, and the few
-volumes a reader must keep whole (a 3D Slicer segmentation's combined labels). The budget is
+the file's values at a time (``slabs.SLAB_BYTES``), never the whole source, and what a reader
+must keep whole (an ASCII NRRD's values; a colour PNG stack's, when they fit). The budget is
 checked from the header, before any voxel is read: a float64 source is never held whole, so
 its width does not count, only the bone's.
 """

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import nrrd
@@ -14,7 +15,7 @@ from .convert import LoadOptions, check_size
 from .errors import BoneFileError
 from .geometry import from_axes, mm_per_unit, to_lps
 from .payload import Payload
-from .slabs import StreamSource, as_source
+from .slabs import Block, StreamSource, VoxelSource, as_source
 from .volume import Progress, RawVolume
 
 #: NRRD ``space`` values → the patient frame to convert from (None: taken as given).
@@ -31,8 +32,8 @@ def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> Ra
     """A NRRD volume, or a 3D Slicer segmentation (3-D label map or 4-D layers).
 
     The voxels are not read here: the volume's :class:`~.slabs.StreamSource` reads (and
-    inflates) them a block at a time while they are converted. A segmentation's combined
-    label map is made here, a block of layers at a time."""
+    inflates) them a block at a time while they are converted; a segmentation's layers are
+    combined into one label map a block at a time then too."""
     with open(path, "rb") as fh:
         try:
             header = nrrd.read_header(fh)
@@ -53,8 +54,7 @@ def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> Ra
     data = _voxels(path, header, data_start, shape, options)
     if not segments:
         return RawVolume(path, "nrrd", data, spacing, origin, direction, notes=notes)
-    values = _combine_segments(path, data, sizes[0] if layered else 1, segments, options,
-                               progress)
+    values = _Segments(path, data, sizes[0] if layered else 1, segments, options)
     return RawVolume(path, "nrrd", values, spacing, origin, direction, kind="labels",
                      segments={i + 1: s for i, (s, _, _) in enumerate(segments)},
                      numbered_by_reader=True, notes=notes)
@@ -203,37 +203,42 @@ def _utf8_fields(path: Path) -> dict[str, str]:
     return fields
 
 
-def _combine_segments(
-    path: Path, data: StreamSource | np.ndarray, n_layers: int,
-    segments: list[tuple[Segment, int, int]], options: LoadOptions,
-    progress: Progress | None,
-) -> np.ndarray:
-    """One label volume (segment s → value s + 1) from the layers, a block at a time. Where
-    segments overlap the later one wins, and forbidden ones win over all: a nerve inside a
-    filled bone segment must stay a nerve."""
-    source = as_source(data)
-    nx = source.shape[0] // n_layers
-    shape = (nx, *source.shape[1:])
-    dtype = np.uint8 if len(segments) < 255 else np.uint16
-    require(path, shape, options.memory_budget_bytes,
-            int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize,
-            "its combined segments")
-    for segment, layer, _ in segments:
-        if not 0 <= layer < n_layers:
-            raise BoneFileError(path, f"segment {segment.name!r} is on layer {layer}, but "
-                                      f"there are {n_layers} layers")
-    order = sorted(range(len(segments)),
-                   key=lambda s: options.materials.is_forbidden(s + 1, segments[s][0]))
-    values = np.zeros(shape, dtype=dtype)
-    done = 0
-    for index, block in source.blocks():
-        # A block holds whole rows of the fastest axis: every layer of nx voxels.
-        layers = block.reshape((n_layers, nx, *block.shape[1:]), order="F")
-        part = values[:, index[1], index[2]]
-        for s in order:
-            _, layer, value = segments[s]
-            part[layers[layer] == value] = s + 1
-        done += block.size
-        if progress is not None:  # in slices of the last axis
-            progress("reading", done * shape[2] // source.size, shape[2])
-    return values
+class _Segments(VoxelSource):
+    """One label volume (segment s → value s + 1) from a segmentation's layers, combined a
+    block at a time as the converter reads it (the layers are read, and inflated, again for
+    each pass). Where segments overlap the later one wins, and forbidden ones win over all: a
+    nerve inside a filled bone segment must stay a nerve.
+
+    Args:
+        path: the file (errors name it).
+        layers: the layers as one volume whose fastest axis holds every layer of a row.
+        n_layers: layers in the file (1: a collapsed label map).
+        segments: (segment, layer, label value) per segment, in segment order.
+        options: the materials file says which segments are forbidden.
+    """
+
+    def __init__(self, path: Path, layers: StreamSource | np.ndarray, n_layers: int,
+                 segments: list[tuple[Segment, int, int]], options: LoadOptions) -> None:
+        for segment, layer, _ in segments:
+            if not 0 <= layer < n_layers:
+                raise BoneFileError(path, f"segment {segment.name!r} is on layer {layer}, "
+                                          f"but there are {n_layers} layers")
+        self.layers = as_source(layers)
+        self.n_layers = n_layers
+        self.nx = self.layers.shape[0] // n_layers
+        self.shape = (self.nx, *self.layers.shape[1:])  # type: ignore[assignment]
+        self.dtype = np.dtype(np.uint8 if len(segments) < 255 else np.uint16)
+        self.held_bytes = self.layers.held_bytes
+        self.segments = segments
+        self.order = sorted(range(len(segments)),
+                            key=lambda s: options.materials.is_forbidden(s + 1, segments[s][0]))
+
+    def blocks(self) -> Iterator[Block]:
+        for index, block in self.layers.blocks():
+            # A block holds whole rows of the fastest axis: every layer of nx voxels.
+            layers = block.reshape((self.n_layers, self.nx, *block.shape[1:]), order="F")
+            values = np.zeros(layers.shape[1:], dtype=self.dtype)
+            for s in self.order:
+                _, layer, value = self.segments[s]
+                values[layers[layer] == value] = s + 1
+            yield (slice(0, self.nx), index[1], index[2]), values
