@@ -155,7 +155,9 @@ class StreamSource(VoxelSource):
     def blocks(self) -> Iterator[Block]:
         reader = self.payload.open()
         try:
-            per_block = SLAB_BYTES // max(self.stored.itemsize, 1)
+            # Sized by the wider of what is read and what the transform makes of it (a
+            # uint8 NIfTI with a scale slope becomes float64).
+            per_block = SLAB_BYTES // max(self.stored.itemsize, self.dtype.itemsize, 1)
             order = "F" if self.fortran else "C"
             for index in block_indices(self.shape, self.fortran, per_block):
                 shape = block_shape(index)
