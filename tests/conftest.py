@@ -114,6 +114,10 @@ SLOW: tuple[str, ...] = (
     "test_cli.py::test_bench_accuracy_json_and_results_file",
     # JACK's dummy driver run for a minute; the ALSA file plugin test covers the same output.
     "test_actuator_audio.py::test_audio_jack_callback_keeps_up_and_watchdog",
+    # Gigabyte-sized float64 CTs and 8 GiB gzip bombs against serve (a minute of writing and
+    # loading); the loaders' budget, streaming and bomb refusal stay in the fast tier
+    # (test_load_streaming.py).
+    "test_load_memory.py",
     # The session bench's variants; its rows and counts stay in the fast tier.
     "test_bench_sessions.py::test_reading_each_reply_as_it_comes_from_loops_that_do_not_wake_ahead",
     "test_bench_sessions.py::test_realtime_reaches_serve_and_the_generator",

@@ -125,6 +125,16 @@ def test_bad_bones_are_refused_with_a_reason(api, bone, status, words):
     assert words in json.dumps(r.json()["detail"])
 
 
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity"])
+def test_a_voxel_size_that_is_not_a_number_is_named_so(api, value):
+    """Python's JSON reads NaN and Infinity: they are refused as what they are, not as out of
+    range."""
+    r = api.post("/sessions", headers={"Content-Type": "application/json"},
+                 content=f'{{"bone": {{"source": "phantom:workpiece", "voxel_mm": {value}}}}}')
+    assert r.status_code == 422, r.text
+    assert "finite number" in json.dumps(r.json()["detail"])
+
+
 def test_library_bones_load_and_list(api):
     listing = {e["source"]: e for e in api.get("/library").json()}
     assert listing["library:block.bone.npz"]["needs_kind"] is False

@@ -156,17 +156,20 @@ def test_ct5n_is_ordered_by_geometry_not_by_file_name(tmp_path):
 
     calls = []
     raw = read_dicom_series(folder, LoadOptions(), lambda *args: calls.append(args))
-    assert raw.data.shape == (16, 16, 5) and raw.data.dtype == np.int16
+    assert calls == []  # headers only: the pixels are decoded as the converter reads them
+    hu = raw.data.array()
+    assert hu.shape == (16, 16, 5) and hu.dtype == np.int16
     assert raw.kind == "ct" and raw.format == "dicom"
     assert raw.origin_mm == pytest.approx([-72.199997, -143.0, -1.2375])
     assert raw.spacing_mm == pytest.approx([0.488281, 0.488281, 2.5])
     assert np.allclose(raw.direction, np.eye(3))
-    assert calls == [("reading", k, 5) for k in range(1, 6)]
+    load_bone(folder, progress=lambda *args: calls.append(args))
+    assert calls[-1] == ("converting", 5, 5)
     for file in files:
         ds = pydicom.dcmread(file)
         k = round((float(ds.ImagePositionPatient[2]) - raw.origin_mm[2]) / 2.5)
         expected = ds.pixel_array.T.astype(np.int64) - 1024
-        np.testing.assert_array_equal(raw.data[:, :, k], expected)
+        np.testing.assert_array_equal(hu[:, :, k], expected)
 
     bone = load_bone(folder)
     assert bone.kind == "ct" and bone.format == "dicom"
@@ -236,8 +239,8 @@ def test_oblique_series_round_trips_hu_and_geometry(tmp_path):
     hu = stored.astype(np.int64) - 1024
 
     raw = read_dicom_series(tmp_path / "oblique", LoadOptions(), None)
-    assert raw.data.dtype == np.int16
-    np.testing.assert_array_equal(raw.data, hu)
+    assert raw.data.array().dtype == np.int16
+    np.testing.assert_array_equal(raw.data.array(), hu)
     np.testing.assert_allclose(raw.spacing_mm, SPACING_MM, atol=1e-9)
     np.testing.assert_allclose(raw.origin_mm, ORIGIN_MM, atol=1e-9)
     np.testing.assert_allclose(raw.direction, rotation, atol=1e-9)
@@ -261,16 +264,16 @@ def test_signed_pixels_without_intercept_stay_int16(tmp_path):
     stored = (ct_pixels().astype(np.int32) - 1024).astype(np.int16)
     write_series(tmp_path / "signed", stored, intercept=0.0)
     raw = read_dicom_series(tmp_path / "signed", LoadOptions(), None)
-    assert raw.data.dtype == np.int16
-    np.testing.assert_array_equal(raw.data, stored)
+    assert raw.data.array().dtype == np.int16
+    np.testing.assert_array_equal(raw.data.array(), stored)
 
 
 def test_non_integer_slope_gives_float32(tmp_path):
     stored = ct_pixels()
     write_series(tmp_path / "float", stored, slope=0.5, intercept=-1000.25)
     raw = read_dicom_series(tmp_path / "float", LoadOptions(), None)
-    assert raw.data.dtype == np.float32
-    np.testing.assert_array_equal(raw.data, stored * 0.5 - 1000.25)  # exact: quarters
+    assert raw.data.array().dtype == np.float32
+    np.testing.assert_array_equal(raw.data.array(), stored * 0.5 - 1000.25)  # exact: quarters
 
 
 def test_values_beyond_int16_widen_to_float32(tmp_path):
@@ -278,8 +281,8 @@ def test_values_beyond_int16_widen_to_float32(tmp_path):
     stored[3, 4, 5] = 40000  # HU 38976 in the sixth slice: the first five were int16
     write_series(tmp_path / "wide", stored)
     raw = read_dicom_series(tmp_path / "wide", LoadOptions(), None)
-    assert raw.data.dtype == np.float32
-    np.testing.assert_array_equal(raw.data, stored.astype(np.int64) - 1024)
+    assert raw.data.array().dtype == np.float32
+    np.testing.assert_array_equal(raw.data.array(), stored.astype(np.int64) - 1024)
 
 
 def test_series_with_descending_positions_is_flipped_into_order(tmp_path):
@@ -291,7 +294,7 @@ def test_series_with_descending_positions_is_flipped_into_order(tmp_path):
     raw = read_dicom_series(tmp_path / "down", LoadOptions(), None)
     np.testing.assert_allclose(raw.direction, flip, atol=1e-12)
     assert np.linalg.det(raw.direction) == pytest.approx(1.0)
-    np.testing.assert_array_equal(raw.data, stored.astype(np.int64) - 1024)
+    np.testing.assert_array_equal(raw.data.array(), stored.astype(np.int64) - 1024)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -374,7 +377,7 @@ def test_junk_files_beside_the_slices_are_ignored(tmp_path):
     (folder / "DICOMDIR").write_bytes(b"not read")
     (folder / "sub").mkdir()
     raw = read_dicom_series(folder, LoadOptions(), None)
-    np.testing.assert_array_equal(raw.data, stored.astype(np.int64) - 1024)
+    np.testing.assert_array_equal(raw.data.array(), stored.astype(np.int64) - 1024)
     assert any("skipped 4 file(s)" in note for note in raw.notes)
     assert load_bone(folder).grid.shape == (6, 5, 4)
 
@@ -397,7 +400,7 @@ def test_mr_needs_an_explicit_kind(tmp_path):
     with pytest.raises(BoneFileError, match=r"MR, not CT.*kind"):
         load_bone(tmp_path / "mr")
     raw = read_dicom_series(tmp_path / "mr", LoadOptions(kind="ct"), None)
-    np.testing.assert_array_equal(raw.data, stored)
+    np.testing.assert_array_equal(raw.data.array(), stored)
     assert load_bone(tmp_path / "mr", LoadOptions(kind="ct")).kind == "ct"
 
 

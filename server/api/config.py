@@ -11,6 +11,7 @@ TOML (``burrforce serve --config FILE``)::
     bone_library = "/srv/bones" # bones sessions may load by name (library:NAME)
     upload_max_mb = 1024
     data_budget_bytes = "20GiB" # uploads + snapshots + recordings + exports; 0: no limit
+    load_budget_bytes = 0       # memory one bone load may take; 0: its bone's + 512 MiB
     cors_origins = []           # browser origins allowed to call the API (default none)
     max_sessions = 16           # sessions held at once (each keeps its bone in memory)
     workers = 3                 # hot-loop processes, worker i on udp_port + i (serve's
@@ -84,6 +85,11 @@ class ServeConfig:
         data_budget_bytes: what uploads, snapshots, recordings and exports may take together
             (``GET /v1/storage``); writes beyond it are refused. 0: no limit. TOML and the
             environment also take sizes like ``"20GiB"`` or ``"500M"``.
+        load_budget_bytes: the most memory loading one bone may take in the control plane,
+            bytes (sizes as for ``data_budget_bytes``): a file whose bone would need more is
+            refused (413) from its header, before a voxel is read. 0: each load's own
+            budget, the bone's bytes (3 per voxel) plus 512 MiB — the source is read and
+            converted a slab at a time, never whole, so that is room enough.
         cors_origins: browser origins allowed to call the API; empty turns CORS off.
         max_sessions: sessions the server holds at once (each keeps its bone in memory).
         workers: hot-loop processes; worker i listens on ``udp_port + i``, each session runs
@@ -112,6 +118,7 @@ class ServeConfig:
     bone_library: Path | None = None
     upload_max_mb: float = 1024.0
     data_budget_bytes: int = 20 << 30
+    load_budget_bytes: int = 0
     cors_origins: tuple[str, ...] = ()
     max_sessions: int = 16
     workers: int | None = None
@@ -152,6 +159,10 @@ class ServeConfig:
                 self.data_budget_bytes, int) or self.data_budget_bytes < 0:
             raise ValueError(f"data_budget_bytes must be a non-negative integer (0: no "
                              f"limit), got {self.data_budget_bytes!r}")
+        if isinstance(self.load_budget_bytes, bool) or not isinstance(
+                self.load_budget_bytes, int) or self.load_budget_bytes < 0:
+            raise ValueError(f"load_budget_bytes must be a non-negative integer (0: the "
+                             f"bone's bytes + 512 MiB), got {self.load_budget_bytes!r}")
         if self.device is not None and self.device not in PROFILES:
             raise ValueError(f"device must be one of {', '.join(PROFILES)}, got "
                              f"{self.device!r}")
@@ -176,7 +187,8 @@ class ServeConfig:
 
 _TYPES = {f.name: f.type for f in fields(ServeConfig)}
 _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_library",
-                    "upload_max_mb", "data_budget_bytes", "cors_origins", "max_sessions",
+                    "upload_max_mb", "data_budget_bytes", "load_budget_bytes", "cors_origins",
+                    "max_sessions",
                     "workers", "wake_ahead_us", "wake_cpu_share", "realtime"),
          "session": ("bone", "voxel_mm", "frame", "device", "session_id", "key",
                      "no_auth")}
@@ -185,7 +197,7 @@ _KEYS = {"server": ("host", "http_port", "udp_port", "token", "data_dir", "bone_
 def _coerce(name: str, value: object, source: str) -> object:
     """A TOML or environment value as the field's type; ValueError names where it came from."""
     kind = _TYPES[name]
-    if name == "data_budget_bytes" and value is not None:
+    if name in ("data_budget_bytes", "load_budget_bytes") and value is not None:
         try:
             return parse_size_bytes(value)  # type: ignore[arg-type]
         except ValueError as exc:

@@ -1,7 +1,11 @@
 """Loading bones for sessions: load jobs on a worker thread, and the shared-memory files that
 hand each bone to its hot loop.
 
-A bone is read here (a 5-second CT load never runs in the loop's interpreter), checked against
+A bone is read here (a 5-second CT load never runs in the loop's interpreter), on a thread
+that runs behind everything else on the machine (:func:`lower_priority`: niceness
+``LOAD_NICE``, ``SCHED_BATCH``) and within a memory budget (``serve``'s ``load_budget_bytes``:
+the loaders read a slab at a time and refuse from the header a file whose bone would not
+fit), checked against
 the session's burr, given the session's material changes, and published into shared memory
 (``bone.shared``) in this server's run directory; the loop maps it and the name is unlinked at
 once, an open descriptor keeping the memory reachable for a restarted loop
@@ -25,10 +29,10 @@ import numpy as np
 
 from ..bone import Bone
 from ..bone.engine import check_burr
-from ..bone.loaders import BoneFileError
+from ..bone.loaders import BoneFileError, BoneTooLarge
 from ..bone.shared import SharedBone, SharedBoneRef, publish
 from ..bone.tally import CarveTally
-from .errors import ApiError, Conflict, Gone, Invalid
+from .errors import ApiError, Conflict, Gone, Invalid, TooLarge
 from .generation import next_generation
 from .jobs import Job, JobTable
 from .recordings import Recordings
@@ -38,6 +42,21 @@ from .sources import BoneSource, SourceError
 from .workers import WorkerPool, sent_of
 
 log = logging.getLogger("burrforce.api")
+#: The loading thread's niceness: behind the hot loops and the control plane's own threads.
+LOAD_NICE = 10
+
+
+def lower_priority() -> None:
+    """Put the calling thread (Linux: niceness is per thread) at ``LOAD_NICE`` and under
+    ``SCHED_BATCH``, so a load's seconds of inflating and converting take the cores only
+    when the hot loops leave them. Where it is not permitted, the thread runs as it is."""
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, max(LOAD_NICE, os.getpriority(os.PRIO_PROCESS,
+                                                                           tid)))
+        os.sched_setscheduler(tid, os.SCHED_BATCH, os.sched_param(0))
+    except (AttributeError, OSError):  # not Linux, or a scheduler it may not leave
+        pass
 
 
 class BoneLoads:
@@ -50,17 +69,22 @@ class BoneLoads:
         recordings: a recording ends when its session's bone is replaced.
         run_dir: the folder of this server's shared bones.
         data_dir: the data directory (its bone-generation counter).
+        memory_budget_bytes: the most memory one load may take (``load_budget_bytes``);
+            None: each load's bone's bytes + 512 MiB.
     """
 
     def __init__(self, sessions: SessionTable, jobs: JobTable, pool: WorkerPool,
-                 recordings: Recordings, run_dir: Path, data_dir: Path) -> None:
+                 recordings: Recordings, run_dir: Path, data_dir: Path,
+                 memory_budget_bytes: int | None = None) -> None:
         self.sessions = sessions
         self.jobs = jobs
         self.pool = pool
         self.recordings = recordings
         self.run_dir = run_dir
         self.data_dir = data_dir
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="burrforce-load")
+        self.memory_budget_bytes = memory_budget_bytes
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="burrforce-load",
+                                            initializer=lower_priority)
         self._file_counter = 0
         self._counter_lock = threading.Lock()
 
@@ -92,7 +116,7 @@ class BoneLoads:
 
         try:
             job.stage = "reading"
-            bone = source.load(progress)
+            bone = source.load(progress, self.memory_budget_bytes)
             job.stage = "checking"
             try:
                 check_burr(bone.grid.spacing_mm, session.params, session.shaft)
@@ -111,6 +135,8 @@ class BoneLoads:
             job.state = "done"
         except ApiError as exc:
             self._fail(session, job, exc.detail, None if isinstance(exc, Invalid) else type(exc))
+        except BoneTooLarge as exc:  # answered 413, naming what it needs and the budget
+            self._fail(session, job, str(exc), TooLarge)
         except (BoneFileError, SourceError, ValueError, OSError, RuntimeError) as exc:
             self._fail(session, job, str(exc))
         except MemoryError:

@@ -63,7 +63,7 @@ class BoneRequest(Strict):
     kind: Literal["ct", "labels", "density"] | None = Field(
         None, description="what the voxels are; required for npy, npz, NRRD, NIfTI and PNG "
                           "(their voxels could mean any of the three)")
-    voxel_mm: float | None = Field(None, gt=0.001, le=10.0,
+    voxel_mm: float | None = Field(None, gt=0.001, le=10.0, allow_inf_nan=False,
                                    description="a phantom's voxel size, mm")
     spacing_mm: Vec3 | None = Field(None, description="voxel size for npy and PNG files, mm")
 

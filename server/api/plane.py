@@ -72,7 +72,8 @@ class ControlPlane:
                                config.data_budget_bytes, self.sessions, self.jobs)
         self.recordings = Recordings(self.pool, self.storage)
         self.loads = BoneLoads(self.sessions, self.jobs, self.pool, self.recordings,
-                               self.run_dir.path, self.storage.data_dir)
+                               self.run_dir.path, self.storage.data_dir,
+                               config.load_budget_bytes or None)
         #: Local haptic devices driven from sessions (``routes_devices``).
         self.devices = DeviceAttachments()
         self.settings = SessionSettings(self.pool, self.devices.attached)

@@ -60,11 +60,15 @@ class BoneSource:
     voxel_mm: float | None = None
     spacing_mm: tuple[float, float, float] | None = None
 
-    def load(self, progress: Progress | None = None) -> Bone:
-        """Load it (seconds for a large CT). Raises BoneFileError/ValueError on bad data."""
+    def load(self, progress: Progress | None = None,
+             memory_budget_bytes: int | None = None) -> Bone:
+        """Load it (seconds for a large CT) within ``memory_budget_bytes`` (None: the bone's
+        bytes + 512 MiB). Raises BoneFileError/ValueError on bad data, ``BoneTooLarge`` (a
+        BoneFileError) for a file too large for the budget."""
         if self.path is None:
             return phantom(self.source.split(":", 1)[1], self.voxel_mm)
-        options = LoadOptions(kind=self.kind or "auto", spacing_mm=self.spacing_mm)
+        options = LoadOptions(kind=self.kind or "auto", spacing_mm=self.spacing_mm,
+                              memory_budget_bytes=memory_budget_bytes)
         return load_bone(self.path, options, progress)
 
 

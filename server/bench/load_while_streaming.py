@@ -9,6 +9,11 @@ the file, building the engine and the session, warming it). The streaming sessio
 trips are split by when their packet was sent: during a load (publish and hot-loop build),
 during the hot-loop build alone, and outside any load.
 
+With ``--file`` (and ``--synthetic``), the real thing instead: ``burrforce serve`` runs with
+the workpiece in session 1, the client streams it, and each file is uploaded and loaded into
+session 2 over REST, as a client would (``load_files``); the report gives each load's answer,
+time and the control plane's peak resident memory, and the replies lost meanwhile.
+
 Wall-clock round trips: on a shared machine, run it when it is quiet, or compare runs made
 back to back.
 """
@@ -249,12 +254,54 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet-s", type=float_in(0.5, 600.0, "quiet spell", "s"), default=3.0,
                    help="seconds of streaming before, between and after the loads. "
                         "Default 3")
+    p.add_argument("--file", type=Path, action="append", default=[], metavar="PATH",
+                   help="instead of --size: run burrforce serve and upload and load this "
+                        "bone file into a second session, measuring the control plane's "
+                        "peak memory (repeat for several; a name starting bomb- loads as "
+                        "density, any other as ct). Writes OUT/load-while-streaming-files.md "
+                        "and .json")
+    p.add_argument("--synthetic", action="store_true",
+                   help="as --file, with generated files: float64 CTs of 512³ and 1024³ "
+                        "voxels and 8 GiB uint8 gzip bombs, as gzip NRRD and .nii.gz (a few "
+                        "MB each; writing them takes a minute)")
+    p.add_argument("--load-budget", type=size_bytes, default=None, metavar="SIZE",
+                   help="with --file or --synthetic: serve's load_budget_bytes (2GiB, 800M). "
+                        "Default serve's: each load's bone + 512 MiB")
+
+
+def size_bytes(text: str) -> int:
+    from ..api.config import parse_size_bytes
+
+    try:
+        return parse_size_bytes(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def main(args: argparse.Namespace) -> int:
     out = runner.out_dir(args)
+    if args.file or args.synthetic:
+        return _main_files(args, out)
     result = run(args.size, args.loads, args.quiet_s, progress=runner.say)
     md, js = write_results(result, out)
+    return runner.report(args, md, js, rows=result)
+
+
+def _main_files(args: argparse.Namespace, out: Path) -> int:
+    from .load_files import page_lines, run_files, synthetic_files
+
+    work = Path(tempfile.mkdtemp(prefix="burrforce-lws-files-"))
+    try:
+        paths = list(args.file)
+        if args.synthetic:
+            runner.say("writing the synthetic files")
+            paths += synthetic_files(work)
+        result = run_files(paths, args.quiet_s, load_budget=args.load_budget,
+                           progress=runner.say)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    result, js = runner.save_json(out, "load-while-streaming-files", result)
+    md = runner.write_page(out, "load-while-streaming-files", page_lines(result))
     return runner.report(args, md, js, rows=result)
 
 

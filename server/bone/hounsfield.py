@@ -16,7 +16,6 @@ contrast.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +26,6 @@ TRABECULAR_HU = (148.0, 661.0)
 CORTICAL_HU = (662.0, 1988.0)
 #: Any HU a file could hold: int16 and beyond, with room for float rescales.
 MAX_ABS_HU = 1e6
-#: Slices converted per call, so progress can be reported and Ctrl-C honoured.
-SLAB = 16
 
 
 @dataclass(frozen=True)
@@ -86,45 +83,34 @@ class CTMapping:
         return self.bands[0].min_hu
 
 
-def ct_to_bone(
-    hu: np.ndarray,
-    mapping: CTMapping,
-    band_labels: np.ndarray,
-    progress: Callable[[int, int], None] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Density and labels of a CT volume.
+class CTClassifier:
+    """Density and labels of HU values under ``mapping``, a block at a time.
 
     Args:
-        hu: (nx, ny, nz) HU, any real dtype (already rescaled).
         mapping: the bands.
         band_labels: (n_bands,) uint8: the material label of each band.
-        progress: called with (slices done, slices in all) after each slab.
-
-    Returns:
-        ``(density, labels)``: uint8 arrays of hu's shape.
     """
-    lo = np.array([b.min_hu for b in mapping.bands], dtype=np.float64)
-    hi = np.array([b.max_hu for b in mapping.bands], dtype=np.float64)
-    # Bands whose integer ranges touch (661 | 662) meet at the next band's start, so 661.5 in
-    # a float scan is not lost between them; a wider gap is a gap. The top band ends at max_hu
-    # unless above_top.
-    upper = np.append(lo[1:], np.inf)
-    for b in range(len(hi) - 1):
-        if lo[b + 1] - hi[b] > 1.0:
-            upper[b] = np.nextafter(hi[b], np.inf)
-    if not mapping.above_top:
-        upper[-1] = np.nextafter(hi[-1], np.inf)
-    density = np.empty(hu.shape, dtype=np.uint8)
-    labels = np.empty(hu.shape, dtype=np.uint8)
-    band_labels = np.asarray(band_labels, dtype=np.uint8)
-    n = hu.shape[0]
-    for start in range(0, n, SLAB):
-        stop = min(start + SLAB, n)
-        _classify(hu[start:stop], lo, upper, band_labels,
-                  float(mapping.partial_volume_hu), density[start:stop], labels[start:stop])
-        if progress is not None:
-            progress(stop, n)
-    return density, labels
+
+    def __init__(self, mapping: CTMapping, band_labels: np.ndarray) -> None:
+        self.lo = np.array([b.min_hu for b in mapping.bands], dtype=np.float64)
+        hi = np.array([b.max_hu for b in mapping.bands], dtype=np.float64)
+        # Bands whose integer ranges touch (661 | 662) meet at the next band's start, so
+        # 661.5 in a float scan is not lost between them; a wider gap is a gap. The top band
+        # ends at max_hu unless above_top.
+        upper = np.append(self.lo[1:], np.inf)
+        for b in range(len(hi) - 1):
+            if self.lo[b + 1] - hi[b] > 1.0:
+                upper[b] = np.nextafter(hi[b], np.inf)
+        if not mapping.above_top:
+            upper[-1] = np.nextafter(hi[-1], np.inf)
+        self.upper = upper
+        self.band_labels = np.asarray(band_labels, dtype=np.uint8)
+        self.ramp_hu = float(mapping.partial_volume_hu)
+
+    def __call__(self, hu: np.ndarray, density: np.ndarray, labels: np.ndarray) -> None:
+        """Write the density and labels of ``hu`` (3-D, any real dtype) into the uint8
+        arrays of its shape."""
+        _classify(hu, self.lo, self.upper, self.band_labels, self.ramp_hu, density, labels)
 
 
 @njit(cache=True, nogil=True)

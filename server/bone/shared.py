@@ -75,6 +75,22 @@ def _layout(shape: tuple[int, int, int]) -> dict[str, int]:
     return offsets
 
 
+#: Each array's dtype in the file.
+_DTYPES = {"density": np.uint8, "labels": np.uint8, "swept": np.uint8,
+           "brick_version": np.int64, "brick_bone": np.int32, "brick_full": np.int32,
+           "brick_labels": np.uint64}
+#: Bytes handed to one write.
+_WRITE_BYTES = 16 << 20
+
+
+def _write(fd: int, offset: int, array: np.ndarray) -> None:
+    """All of ``array``'s bytes (C order) at ``offset`` of the file ``fd``."""
+    data = memoryview(np.ascontiguousarray(array)).cast("B")
+    done = 0
+    while done < len(data):
+        done += os.pwrite(fd, data[done:done + _WRITE_BYTES], offset + done)
+
+
 def _arrays(m: mmap.mmap, shape: tuple[int, int, int]) -> dict[str, np.ndarray]:
     """The file's arrays over the map ``m``."""
     at = _layout(shape)
@@ -164,24 +180,30 @@ def publish(bone: Bone, directory: Path, name: str,
             path.unlink(missing_ok=True)
             raise OSError(exc.errno, f"no room for a {size / 2**20:.0f} MB bone in "
                                      f"{directory}: {exc.strerror}") from None
-    with open(path, "r+b") as f, mmap.mmap(f.fileno(), size) as m:
-        arrays = _arrays(m, grid.shape)
-        for key in ("density", "labels", "swept", "brick_version", "brick_bone",
-                    "brick_full"):
-            arrays[key][...] = getattr(grid, key)
-        if grid.brick_labels is not None:
-            arrays["brick_labels"][...] = grid.brick_labels
-        else:
-            brick_labels(grid.density, grid.labels, arrays["brick_labels"])
-        if tally is not None:
-            first, rows = tally.rows_since(0)
-            CarveTally.over(m, _layout(grid.shape)["tally"]).load(tally.removed, tally.begun,
-                                                                  first, rows)
-        header = np.frombuffer(m, np.int64, N_HEADER, 0)
-        header[H_VERSION] = grid.version
-        header[H_MAGIC] = MAGIC
-        del header, arrays
-        m.flush()
+    # Written, not mapped: pages written through a map count in this process's resident
+    # memory until it is unmapped — a second copy of the bone beside the grid it was loaded
+    # into. Written, they are only the file's (the hot loop maps them).
+    at = _layout(grid.shape)
+    labels_mask = grid.brick_labels
+    if labels_mask is None:
+        labels_mask = np.zeros((*grid.brick_version.shape, LABEL_WORDS), dtype=np.uint64)
+        brick_labels(grid.density, grid.labels, labels_mask)
+    header = np.zeros(N_HEADER, dtype=np.int64)
+    header[H_VERSION] = grid.version
+    header[H_MAGIC] = MAGIC
+    with open(path, "r+b") as f:
+        fd = f.fileno()
+        for key, array in (("density", grid.density), ("labels", grid.labels),
+                           ("swept", grid.swept), ("brick_version", grid.brick_version),
+                           ("brick_bone", grid.brick_bone), ("brick_full", grid.brick_full),
+                           ("brick_labels", labels_mask)):
+            _write(fd, at[key], array.astype(_DTYPES[key], copy=False))
+        if tally is not None:  # small: mapped, only its own pages are touched
+            with mmap.mmap(fd, size) as m:
+                first, rows = tally.rows_since(0)
+                CarveTally.over(m, at["tally"]).load(tally.removed, tally.begun, first, rows)
+                m.flush()
+        _write(fd, 0, header)
     return SharedBoneRef(
         str(path), tuple(int(x) for x in grid.shape),
         tuple(float(x) for x in grid.spacing_mm), tuple(float(x) for x in grid.origin_mm),

@@ -12,7 +12,9 @@ spacing, origin and orientation (world frame: LPS millimetres). Formats:
 - burrforce's own format (``.bone.npz``), written by :func:`save_bone`.
 
 Every failure is a :class:`BoneFileError` naming the file and the problem, raised before
-anything is returned.
+anything is returned; :class:`BoneTooLarge` (one of them) when the load would take more memory
+than its budget (``LoadOptions.memory_budget_bytes``), raised from the header. The voxels are
+read and converted a slab at a time (``slabs``): a source is never held whole.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..bone import Bone
+from .budget import BoneTooLarge
 from .compact import BONE_SUFFIX, save_bone, write_bone
 from .convert import LoadOptions, to_bone
 from .errors import BoneFileError
@@ -32,6 +35,7 @@ __all__ = [
     "FORMATS",
     "MAX_LOAD_VOXELS",
     "BoneFileError",
+    "BoneTooLarge",
     "LoadOptions",
     "Progress",
     "RawVolume",

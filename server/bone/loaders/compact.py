@@ -27,8 +27,9 @@ from ...whole_files import WholeFile
 from ..bone import Bone
 from ..grid import BoneGrid
 from ..materials import Material, MaterialTable
+from .budget import require
 from .errors import BoneFileError
-from .npy_member import MAX_META_ELEMENTS, read_member
+from .npy_member import MAX_META_ELEMENTS, member_source, read_member
 
 BONE_SUFFIX = ".bone.npz"
 FORMAT_KEY = "burrforce_bone"
@@ -71,8 +72,10 @@ def is_compact(archive: zipfile.ZipFile) -> bool:
     return FORMAT_KEY + ".npy" in archive.namelist()
 
 
-def read_compact(path: Path, archive: zipfile.ZipFile, max_voxels: int) -> Bone:
-    """A bone from an open ``.bone.npz``."""
+def read_compact(path: Path, archive: zipfile.ZipFile, max_voxels: int,
+                 memory_budget_bytes: int | None = None) -> Bone:
+    """A bone from an open ``.bone.npz``. Its arrays are the bone's own: the budget is
+    checked for them before they are read (``budget.require``)."""
     version = read_member(path, archive, FORMAT_KEY, 16)
     if version.shape != (1,) or int(version[0]) != FORMAT_VERSION:
         raise BoneFileError(path, f"format version {version.tolist()} is not "
@@ -81,6 +84,8 @@ def read_compact(path: Path, archive: zipfile.ZipFile, max_voxels: int) -> Bone:
                                     "direction", "materials", "meta")} - set(archive.namelist())
     if missing:
         raise BoneFileError(path, f"missing arrays: {sorted(m[:-4] for m in missing)}")
+    require(path, member_source(path, archive, "density", max_voxels).shape,
+            memory_budget_bytes)
     arrays = {k: read_member(path, archive, k, max_voxels)
               for k in ("density", "labels", "swept")}
     meta_arrays = {k: read_member(path, archive, k, MAX_META_ELEMENTS)

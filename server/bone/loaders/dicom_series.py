@@ -3,7 +3,9 @@
 Two passes. The first reads headers only (no pixel data), picks the series, and checks that its
 slices make one rectilinear grid: same size, pixel spacing and orientation, positions along the
 slice normal with a uniform step and no sideways drift. Only then, and after the size check,
-does the second pass decode the pixels and rescale them to HU. Slices are ordered by where they
+does the second pass decode the pixels and rescale them to HU, one slice at a time as the
+converter reaches it (``slabs.SliceSource``: the series is never held whole as HU). Slices
+are ordered by where they
 are (ImagePositionPatient projected on the slice normal), never by file name or InstanceNumber,
 which scanners and anonymisers number in either direction.
 
@@ -26,6 +28,7 @@ from pydicom.uid import UID, DeflatedExplicitVRLittleEndian, MediaStorageDirecto
 from .convert import LoadOptions, check_size
 from .errors import BoneFileError
 from .geometry import MAX_SHEAR_COS, from_axes
+from .slabs import SliceSource
 from .volume import Progress, RawVolume
 
 #: Largest difference between slices' PixelSpacing (mm) or ImageOrientationPatient (direction
@@ -88,12 +91,14 @@ def read_dicom_series(path: Path, options: LoadOptions, progress: Progress | Non
             the files in its folder).
         options: ``series_uid`` picks a series when the folder holds several; ``kind`` must be
             given for a modality other than CT; ``max_voxels`` limits the size.
-        progress: called as progress("reading", slices done, slices) while decoding.
+        progress: unused: the slices are decoded as the converter reaches them, which reports
+            its progress.
 
     Returns:
-        data (Columns, Rows, slices): ``data[i, j, k]`` is pixel (row j, column i) of the k-th
-        slice along the normal; int16 HU when slopes and intercepts are integers and the values
-        fit, else float32. spacing_mm (column spacing, row spacing, slice step); direction
+        data (Columns, Rows, slices), a :class:`~.slabs.SliceSource` that decodes a slice when
+        it is read: ``data[i, j, k]`` is pixel (row j, column i) of the k-th slice along the
+        normal; int16 HU when slopes and intercepts are integers and the values fit, else
+        float32. spacing_mm (column spacing, row spacing, slice step); direction
         columns (row direction, column direction, normal); origin_mm the first slice's
         ImagePositionPatient.
 
@@ -145,7 +150,7 @@ def read_dicom_series(path: Path, options: LoadOptions, progress: Progress | Non
 
     shape = (first.cols, first.rows, len(ordered))
     check_size(path, shape, options)
-    data = _read_hu(ordered, shape, progress)
+    data = _hu_slices(ordered, shape)
     return RawVolume(path, "dicom", data, spacing, origin, direction, kind=kind, notes=notes)
 
 
@@ -531,29 +536,26 @@ def _where(position: np.ndarray) -> str:
 # Second pass: pixels
 
 
-def _read_hu(ordered: list[_Slice], shape: tuple[int, int, int],
-             progress: Progress | None) -> np.ndarray:
-    """Decode every slice and rescale it to HU into one (Columns, Rows, slices) array."""
+def _hu_slices(ordered: list[_Slice], shape: tuple[int, int, int]) -> SliceSource:
+    """The series as a source that decodes a slice and rescales it to HU when the converter
+    reaches it: (Columns, Rows) per slice, int16 HU when slopes and intercepts are integers
+    and the slice's values fit, else float32."""
     integral = all(float(s.slope).is_integer() and float(s.intercept).is_integer()
                    for s in ordered)
-    # Start as int16 when that can be exact; widen to float32 (exact for these integers) the
-    # moment a slice does not fit, rather than holding a wide copy of the whole volume.
-    data = np.empty(shape, dtype=np.int16 if integral else np.float32)
-    for k, s in enumerate(ordered):
+
+    def read(k: int) -> np.ndarray:
+        s = ordered[k]
         pixels = _read_pixels(s)
-        hu = None
-        if data.dtype == np.int16 and np.issubdtype(pixels.dtype, np.integer):
+        if integral and np.issubdtype(pixels.dtype, np.integer):
             hu = pixels.astype(np.int64) * int(s.slope) + int(s.intercept)
-            if hu.min() < INT16_MIN or hu.max() > INT16_MAX:
-                hu = None
-        if hu is None:
-            if data.dtype == np.int16:
-                data = data.astype(np.float32)
-            hu = pixels.astype(np.float64) * s.slope + s.intercept
-        data[:, :, k] = hu.T  # pixel (row j, column i) → data[i, j, k]
-        if progress is not None:
-            progress("reading", k + 1, len(ordered))
-    return data
+            if INT16_MIN <= hu.min() and hu.max() <= INT16_MAX:
+                return hu.astype(np.int16).T  # pixel (row j, column i) → data[i, j, k]
+            return hu.astype(np.float32).T
+        return (pixels.astype(np.float64) * s.slope + s.intercept).astype(np.float32).T
+
+    # A slice is decoded whole: its pixels, their int64 HU and the result.
+    slice_bytes = shape[0] * shape[1] * (2 + 8 + 4)
+    return SliceSource(read, shape, np.int16 if integral else np.float32, slice_bytes)
 
 
 def _read_pixels(s: _Slice) -> np.ndarray:

@@ -53,7 +53,7 @@ def from_axes(path: Path, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Returns:
         ``(spacing_mm (3,), direction (3, 3))``: the columns' lengths and the unit columns. The
-        direction may still be a reflection; :func:`make_right_handed` fixes that.
+        direction may still be a reflection; :func:`right_handed` fixes that.
 
     Raises:
         BoneFileError: a non-finite, zero-length or sheared axis.
@@ -78,26 +78,26 @@ def from_axes(path: Path, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return spacing, nearest_orthonormal(direction)
 
 
-def make_right_handed(
-    data: np.ndarray, origin_mm: np.ndarray, spacing_mm: np.ndarray, direction: np.ndarray,
-    spatial_axis0: int = 0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flip the first grid axis of a left-handed grid, keeping every voxel where it is.
+def right_handed(
+    origin_mm: np.ndarray, spacing_mm: np.ndarray, direction: np.ndarray, n0: int,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The geometry of a grid whose first axis (``n0`` voxels) is flipped when it is
+    left-handed, keeping every voxel where it is.
 
     Radiological NIfTI and many DICOM stacks store a reflection (det −1); BoneGrid wants a
-    rotation. ``data``'s grid axis 0 is its array axis ``spatial_axis0`` (1 when a layer axis
-    comes first).
+    rotation.
 
     Returns:
-        ``(data, origin_mm, direction)``: unchanged when already right-handed (no copy).
+        ``(origin_mm, direction, flipped)``: unchanged and False when already right-handed;
+        else the flipped grid's, and True: voxel i of the file is voxel n0 − 1 − i of the
+        grid.
     """
     if np.linalg.det(direction) > 0.0:
-        return data, origin_mm, direction
-    n = data.shape[spatial_axis0]
-    origin = origin_mm + direction[:, 0] * spacing_mm[0] * (n - 1)
+        return origin_mm, direction, False
+    origin = origin_mm + direction[:, 0] * spacing_mm[0] * (n0 - 1)
     flipped = direction.copy()
     flipped[:, 0] = -flipped[:, 0]
-    return np.flip(data, axis=spatial_axis0), origin, flipped
+    return origin, flipped, True
 
 
 def to_lps(origin: np.ndarray, direction: np.ndarray, frame: str) -> tuple[np.ndarray,

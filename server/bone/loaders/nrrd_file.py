@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-import bz2
 import re
-import zlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
 
 import nrrd
 import numpy as np
 
 from ..material_map import Segment
+from .budget import require
 from .convert import LoadOptions, check_size
 from .errors import BoneFileError
 from .geometry import from_axes, mm_per_unit, to_lps
+from .payload import Payload
+from .slabs import Block, StreamSource, VoxelSource, as_source
 from .volume import Progress, RawVolume
 
 #: NRRD ``space`` values → the patient frame to convert from (None: taken as given).
@@ -25,43 +26,87 @@ SPACES = {
     "scanner-xyz": None, "3d-right-handed": None,
 }
 _SEGMENT_KEY = re.compile(r"^Segment(\d+)_ID$")
-_CHUNK = 1 << 20
 
 
 def read_nrrd(path: Path, options: LoadOptions, progress: Progress | None) -> RawVolume:
-    """A NRRD volume, or a 3D Slicer segmentation (3-D label map or 4-D layers)."""
+    """A NRRD volume, or a 3D Slicer segmentation (3-D label map or 4-D layers).
+
+    The voxels are not read here: the volume's :class:`~.slabs.StreamSource` reads (and
+    inflates) them a block at a time while they are converted; a segmentation's layers are
+    combined into one label map a block at a time then too."""
     with open(path, "rb") as fh:
         try:
             header = nrrd.read_header(fh)
         except (nrrd.NRRDError, ValueError, TypeError, UnicodeDecodeError) as exc:
             raise BoneFileError(path, f"not a valid NRRD header: {exc}") from None
-        sizes = tuple(int(s) for s in header.get("sizes", ()))
-        segments = _segments(path, header, len(sizes) == 4)
-        layered = len(sizes) == 4 and bool(segments)
-        check_size(path, sizes[1:] if layered else sizes, options)
-        if layered and int(np.prod(sizes, dtype=np.int64)) > options.max_voxels:
-            raise BoneFileError(path, f"{sizes[0]} layers of {sizes[1:]} voxels are more than "
-                                      f"the {options.max_voxels:,} allowed")
-        if progress is not None:
-            progress("reading", 0, 1)
-        _check_expansion(path, header, fh, int(np.prod(sizes, dtype=np.int64)))
-        try:
-            data = nrrd.read_data(header, fh, filename=str(path), index_order="F")
-        except (nrrd.NRRDError, ValueError, EOFError, zlib.error, OSError) as exc:
-            raise BoneFileError(path, f"the voxel data is damaged or truncated: "
-                                      f"{exc}") from None
-    if progress is not None:
-        progress("reading", 1, 1)
-    if tuple(data.shape) != sizes:
-        raise BoneFileError(path, f"the data has shape {data.shape}, the header says {sizes}")
+        data_start = fh.tell()
+    sizes = tuple(int(s) for s in header.get("sizes", ()))
+    segments = _segments(path, header, len(sizes) == 4)
+    layered = len(sizes) == 4 and bool(segments)
+    check_size(path, sizes[1:] if layered else sizes, options)
+    if layered and int(np.prod(sizes, dtype=np.int64)) > options.max_voxels:
+        raise BoneFileError(path, f"{sizes[0]} layers of {sizes[1:]} voxels are more than "
+                                  f"the {options.max_voxels:,} allowed")
     spatial = slice(1, 4) if layered else slice(0, 3)
     spacing, origin, direction, notes = _geometry(path, header, spatial, options)
+    # A layered file is read as a volume whose fastest axis holds every layer of a voxel row.
+    shape = (sizes[0] * sizes[1], sizes[2], sizes[3]) if layered else sizes
+    data = _voxels(path, header, data_start, shape, options)
     if not segments:
         return RawVolume(path, "nrrd", data, spacing, origin, direction, notes=notes)
-    values = _combine_segments(path, data if layered else data[None], segments, options)
+    values = _Segments(path, data, sizes[0] if layered else 1, segments, options)
     return RawVolume(path, "nrrd", values, spacing, origin, direction, kind="labels",
                      segments={i + 1: s for i, (s, _, _) in enumerate(segments)},
                      numbered_by_reader=True, notes=notes)
+
+
+def _voxels(path: Path, header: dict, data_start: int, shape: tuple[int, ...],
+            options: LoadOptions) -> StreamSource | np.ndarray:
+    """The voxel values, Fortran order: a source reading the payload (raw, gzip, bzip2), or
+    for ASCII data (small files: text is 3–20 bytes a value) the array pynrrd reads."""
+    try:
+        dtype = np.dtype(nrrd.reader._determine_datatype(header))
+    except (nrrd.NRRDError, KeyError) as exc:
+        raise BoneFileError(path, f"not a valid NRRD header: {exc}") from None
+    encoding = str(header.get("encoding", "raw")).lower()
+    count = int(np.prod(shape, dtype=np.int64))
+    if encoding in ("ascii", "text", "txt"):
+        require(path, tuple(shape), options.memory_budget_bytes, 2 * count * dtype.itemsize,
+                "its text values")
+        with open(path, "rb") as fh:
+            fh.seek(data_start)
+            try:
+                data = nrrd.read_data(header, fh, filename=str(path), index_order="F")
+            except (nrrd.NRRDError, ValueError, EOFError, OSError) as exc:
+                raise BoneFileError(path, f"the voxel data is damaged or truncated: "
+                                          f"{exc}") from None
+        return data.reshape(shape, order="F")
+    codec = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2",
+             "bz2": "bzip2"}.get(encoding)
+    if codec is None:
+        raise BoneFileError(path, f"unsupported NRRD encoding {header.get('encoding')!r} "
+                                  "(known: raw, gzip, bzip2, ascii)")
+    file, offset = _data_file(path, header, data_start)
+    lines = int(header.get("lineskip", header.get("line skip", 0)))
+    skip = int(header.get("byteskip", header.get("byte skip", 0)))
+    if lines < 0 or skip < -1 or (skip == -1 and codec != "raw"):
+        raise BoneFileError(path, f"line skip {lines} and byte skip {skip} are not supported "
+                                  f"with {codec} data")
+    payload = Payload(path, file, offset, codec, count * dtype.itemsize, skip, lines)
+    payload.check()
+    return StreamSource(payload, shape, dtype, fortran=True)
+
+
+def _data_file(path: Path, header: dict, data_start: int) -> tuple[Path, int]:
+    """The file holding the voxels, and where they start in it."""
+    data_file = header.get("datafile", header.get("data file"))
+    if data_file is None:
+        return path, data_start
+    if not isinstance(data_file, str) or data_file.startswith("LIST") or \
+            ("%" in data_file and len(data_file.split()) >= 4):
+        raise BoneFileError(path, "several detached data files are not supported")
+    source = Path(data_file)
+    return (source if source.is_absolute() else path.parent / data_file), 0
 
 
 def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):
@@ -158,72 +203,42 @@ def _utf8_fields(path: Path) -> dict[str, str]:
     return fields
 
 
-def _check_expansion(path: Path, header: dict, fh: BinaryIO, count: int) -> None:
-    """Refuse compressed data that inflates past what the header declares, before pynrrd
-    inflates all of it (a few kB of bzip2 can claim gigabytes)."""
-    encoding = str(header.get("encoding", "raw")).lower()
-    if encoding not in ("gzip", "gz", "bzip2", "bz2"):
-        return
-    itemsize = np.dtype(nrrd.reader._determine_datatype(header)).itemsize
-    skip = int(header.get("byteskip", header.get("byte skip", 0)))
-    limit = max(skip, 0) + count * itemsize if skip >= 0 else 2 * count * itemsize
-    data_file = header.get("datafile", header.get("data file"))
-    start = fh.tell()
-    if data_file is not None:
-        if not isinstance(data_file, str):
-            raise BoneFileError(path, "several detached data files are not supported")
-        source = Path(data_file) if Path(data_file).is_absolute() else path.parent / data_file
-        stream: BinaryIO = open(source, "rb")  # closed in finally
-    else:
-        stream = fh
-    try:
-        for _ in range(int(header.get("lineskip", header.get("line skip", 0)))):
-            stream.readline()
-        inflater = (zlib.decompressobj(zlib.MAX_WBITS | 16) if encoding.startswith("g")
-                    else bz2.BZ2Decompressor())
-        total = 0
-        while (chunk := stream.read(_CHUNK)) and not getattr(inflater, "eof", False):
-            while True:  # inflate this chunk, never more than limit + 1 bytes in all
-                total += len(inflater.decompress(chunk, limit + 1 - total))
-                if total > limit:
-                    raise BoneFileError(path, f"the compressed data inflates past the "
-                                              f"{limit:,} bytes its header declares")
-                chunk = _pending(inflater)
-                if chunk is None:
-                    break
-    except BoneFileError:
-        raise
-    except (zlib.error, OSError, EOFError, ValueError) as exc:
-        raise BoneFileError(path, f"the voxel data is damaged or truncated: {exc}") from None
-    finally:
-        if stream is not fh:
-            stream.close()
-        fh.seek(start)
+class _Segments(VoxelSource):
+    """One label volume (segment s → value s + 1) from a segmentation's layers, combined a
+    block at a time as the converter reads it (the layers are read, and inflated, again for
+    each pass). Where segments overlap the later one wins, and forbidden ones win over all: a
+    nerve inside a filled bone segment must stay a nerve.
 
+    Args:
+        path: the file (errors name it).
+        layers: the layers as one volume whose fastest axis holds every layer of a row.
+        n_layers: layers in the file (1: a collapsed label map).
+        segments: (segment, layer, label value) per segment, in segment order.
+        options: the materials file says which segments are forbidden.
+    """
 
-def _pending(inflater) -> bytes | None:
-    """What to feed the inflater next for the current chunk, or None when it is done with it:
-    zlib keeps back input (unconsumed_tail), bz2 keeps back output (fed with b"")."""
-    if isinstance(inflater, bz2.BZ2Decompressor):
-        return None if inflater.needs_input or inflater.eof else b""
-    return inflater.unconsumed_tail or None
+    def __init__(self, path: Path, layers: StreamSource | np.ndarray, n_layers: int,
+                 segments: list[tuple[Segment, int, int]], options: LoadOptions) -> None:
+        for segment, layer, _ in segments:
+            if not 0 <= layer < n_layers:
+                raise BoneFileError(path, f"segment {segment.name!r} is on layer {layer}, "
+                                          f"but there are {n_layers} layers")
+        self.layers = as_source(layers)
+        self.n_layers = n_layers
+        self.nx = self.layers.shape[0] // n_layers
+        self.shape = (self.nx, *self.layers.shape[1:])  # type: ignore[assignment]
+        self.dtype = np.dtype(np.uint8 if len(segments) < 255 else np.uint16)
+        self.held_bytes = self.layers.held_bytes
+        self.segments = segments
+        self.order = sorted(range(len(segments)),
+                            key=lambda s: options.materials.is_forbidden(s + 1, segments[s][0]))
 
-
-def _combine_segments(
-    path: Path, layers: np.ndarray, segments: list[tuple[Segment, int, int]], options: LoadOptions,
-) -> np.ndarray:
-    """One label volume (segment s → value s + 1) from the layers. Where segments overlap
-    the later one wins, and forbidden ones win over all: a nerve inside a filled bone segment
-    must stay a nerve."""
-    n_layers = layers.shape[0]
-    dtype = np.uint8 if len(segments) < 255 else np.uint16
-    values = np.zeros(layers.shape[1:], dtype=dtype)
-    order = sorted(range(len(segments)),
-                   key=lambda s: options.materials.is_forbidden(s + 1, segments[s][0]))
-    for s in order:
-        segment, layer, value = segments[s]
-        if not 0 <= layer < n_layers:
-            raise BoneFileError(path, f"segment {segment.name!r} is on layer {layer}, but "
-                                      f"there are {n_layers} layers")
-        values[layers[layer] == value] = s + 1
-    return values
+    def blocks(self) -> Iterator[Block]:
+        for index, block in self.layers.blocks():
+            # A block holds whole rows of the fastest axis: every layer of nx voxels.
+            layers = block.reshape((self.n_layers, self.nx, *block.shape[1:]), order="F")
+            values = np.zeros(layers.shape[1:], dtype=self.dtype)
+            for s in self.order:
+                _, layer, value = self.segments[s]
+                values[layers[layer] == value] = s + 1
+            yield (slice(0, self.nx), index[1], index[2]), values

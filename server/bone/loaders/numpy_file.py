@@ -13,7 +13,7 @@ from .compact import is_compact, read_compact
 from .convert import LoadOptions, check_size
 from .errors import BoneFileError
 from .geometry import from_axes
-from .npy_member import MAX_META_ELEMENTS, read_member, read_npy_array
+from .npy_member import MAX_META_ELEMENTS, member_source, npy_source, read_member
 from .volume import RawVolume
 
 #: .npz keys for the voxels, and what each means.
@@ -27,7 +27,7 @@ def read_npy(path: Path, options: LoadOptions) -> RawVolume:
     if options.spacing_mm is None:
         raise BoneFileError(path, "a .npy file has no voxel size: give spacing_mm "
                                   "(--spacing-mm), or use .npz with a spacing_mm array")
-    data = read_npy_array(path, options.max_voxels)
+    data = npy_source(path, options.max_voxels)
     check_size(path, data.shape, options)
     # The converter applies options.spacing_mm and options.origin_mm (and notes them).
     return RawVolume(path, "npy", data, np.asarray(options.spacing_mm, dtype=np.float64),
@@ -43,19 +43,19 @@ def read_npz(path: Path, options: LoadOptions) -> RawVolume | Bone:
         raise BoneFileError(path, f"not a valid .npz (zip) file: {exc}") from None
     with archive:
         if is_compact(archive):
-            return read_compact(path, archive, options.max_voxels)
+            return read_compact(path, archive, options.max_voxels, options.memory_budget_bytes)
         keys = {n[:-4] for n in archive.namelist() if n.endswith(".npy")}
         volume_keys = [k for k in VOLUME_KEYS if k in keys]
         if not volume_keys:
             raise BoneFileError(path, f"no volume in it: expected one of "
                                       f"{', '.join(VOLUME_KEYS)}; found {sorted(keys)}")
         main = "density" if "density" in volume_keys else volume_keys[0]
-        data = read_member(path, archive, main, options.max_voxels)
+        data = member_source(path, archive, main, options.max_voxels)
         check_size(path, data.shape, options)
         labels = None
         kind = VOLUME_KEYS[main]
         if main == "density" and "labels" in keys:
-            labels = read_member(path, archive, "labels", options.max_voxels)
+            labels = member_source(path, archive, "labels", options.max_voxels)
         meta = {k: read_member(path, archive, k, MAX_META_ELEMENTS)
                 for k in GEOMETRY_KEYS if k in keys}
     if "spacing_mm" in meta:

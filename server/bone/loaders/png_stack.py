@@ -16,8 +16,10 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from ..material_map import Segment
+from .budget import STREAM_WORK_BYTES, bone_bytes, budget_bytes
 from .convert import LoadOptions, check_size
 from .errors import BoneFileError
+from .slabs import SliceSource
 from .volume import Progress, RawVolume
 
 _GRAY_MODES = {"L": np.uint8, "I;16": np.uint16, "I;16B": np.uint16, "I": np.int32,
@@ -31,6 +33,8 @@ def natural_key(path: Path) -> list:
 
 
 def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) -> RawVolume:
+    """A folder of PNG slices. Grey slices are decoded as the converter reaches them; colour
+    slices once here, for their palette (and kept decoded when that fits the load budget)."""
     if not path.is_dir():
         raise BoneFileError(path, "a PNG stack is read from its folder: give the folder")
     files = sorted((p for p in path.iterdir() if p.suffix.lower() == ".png"
@@ -43,40 +47,72 @@ def read_png_stack(path: Path, options: LoadOptions, progress: Progress | None) 
     first = _open(files[0])
     width, height = first.size
     mode = first.mode
-    check_size(path, (height, width, len(files)), options)
+    shape = (height, width, len(files))
+    check_size(path, shape, options)
     colour = mode in _COLOUR_MODES
     if not colour and mode not in _GRAY_MODES:
         raise BoneFileError(files[0], f"unsupported PNG mode {mode}")
     n = len(files)
-    if colour:
-        occupancy = np.empty((height, width, n), dtype=np.uint8)
-        values = np.empty((height, width, n), dtype=np.uint8)
-        palette: dict[int, int] = {}
-    else:
-        data = np.empty((height, width, n), dtype=_GRAY_MODES[mode])
-    for k, file in enumerate(files):
-        image = first if k == 0 else _open(file)
-        if image.size != (width, height) or image.mode != mode:
-            raise BoneFileError(file, f"{image.size[0]}×{image.size[1]} {image.mode} differs "
-                                      f"from the first slice's {width}×{height} {mode}")
-        try:
-            if colour:
-                occupancy[:, :, k], values[:, :, k] = _segment_slice(file, image, palette)
-            else:
-                data[:, :, k] = np.asarray(image, dtype=_GRAY_MODES[mode])
-        except (OSError, ValueError, SyntaxError) as exc:
-            raise BoneFileError(file, f"the image data is damaged or truncated: {exc}") from None
-        if progress is not None:
-            progress("reading", k + 1, n)
     spacing = np.asarray(options.spacing_mm, dtype=np.float64)
     origin = np.zeros(3)  # the converter applies options.origin_mm (and notes it)
     notes = [f"{n} PNG slices in natural file-name order; identity orientation"]
+    slice_bytes = width * height * 16  # a decoded slice: RGBA, packed colours, masks
+
+    def open_slice(k: int) -> Image.Image:
+        image = _open(files[k])
+        if image.size != (width, height) or image.mode != mode:
+            raise BoneFileError(files[k], f"{image.size[0]}×{image.size[1]} {image.mode} "
+                                          f"differs from the first slice's {width}×{height} "
+                                          f"{mode}")
+        return image
+
     if not colour:
+        def grey(k: int) -> np.ndarray:
+            try:
+                return np.asarray(open_slice(k), dtype=_GRAY_MODES[mode])
+            except (OSError, ValueError, SyntaxError) as exc:
+                raise BoneFileError(files[k], f"the image data is damaged or truncated: "
+                                              f"{exc}") from None
+        data = SliceSource(grey, shape, np.dtype(_GRAY_MODES[mode]), slice_bytes)
         return RawVolume(path, "png", data, spacing, origin, np.eye(3), notes=notes)
+
+    palette: dict[int, int] = {}
+
+    def segmented(k: int) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            return _segment_slice(files[k], open_slice(k), palette)
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise BoneFileError(files[k], f"the image data is damaged or truncated: "
+                                          f"{exc}") from None
+
+    occupancy, values = _colour_volumes(path, shape, segmented, options, progress)
     segments = {v: Segment(color=((key >> 16) & 255, (key >> 8) & 255, key & 255))
                 for key, v in palette.items()}
     return RawVolume(path, "png", occupancy, spacing, origin, np.eye(3), kind="density",
                      labels=values, segments=segments, numbered_by_reader=True, notes=notes)
+
+
+def _colour_volumes(path: Path, shape: tuple[int, int, int], segmented,
+                    options: LoadOptions, progress: Progress | None):
+    """(occupancy, colour index) of a colour stack: arrays decoded in one pass when both fit
+    the load budget beside the bone, else sources decoding the slices again per pass (the
+    palette is complete after the first, so each pass numbers the colours alike)."""
+    n = shape[2]
+    held = 2 * int(np.prod(shape, dtype=np.int64))
+    fits = (bone_bytes(shape) + STREAM_WORK_BYTES + held
+            <= budget_bytes(shape, options.memory_budget_bytes))
+    occupancy = np.empty(shape, dtype=np.uint8) if fits else None
+    values = np.empty(shape, dtype=np.uint8) if fits else None
+    for k in range(n):
+        o, v = segmented(k)
+        if occupancy is not None and values is not None:
+            occupancy[:, :, k], values[:, :, k] = o, v
+        if progress is not None:
+            progress("reading", k + 1, n)
+    if occupancy is not None and values is not None:
+        return occupancy, values
+    return (SliceSource(lambda k: segmented(k)[0], shape, np.dtype(np.uint8)),
+            SliceSource(lambda k: segmented(k)[1], shape, np.dtype(np.uint8)))
 
 
 def _open(file: Path) -> Image.Image:

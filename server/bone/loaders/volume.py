@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..material_map import Segment
+from .slabs import VoxelSource
 
 #: What a volume's values mean. "auto" lets :mod:`.convert` decide from the values.
 KINDS = ("auto", "ct", "labels", "density")
@@ -26,14 +27,16 @@ class RawVolume:
     Attributes:
         path: the file or directory read.
         format: the reader ("npy", "nrrd", "nifti", "dicom", "png").
-        data: (nx, ny, nz) values: HU, label values, uint8 density or fractions in [0, 1].
+        data: (nx, ny, nz) values: HU, label values, uint8 density or fractions in [0, 1]; an
+            array, or a :class:`~.slabs.VoxelSource` that reads them a block at a time.
         spacing_mm: (3,) voxel size along the array axes, mm.
         origin_mm: (3,) world position of voxel (0, 0, 0)'s centre, mm.
         direction: (3, 3) unit grid axes as columns; may be a reflection until
-            :func:`.geometry.make_right_handed`.
+            :func:`.geometry.right_handed`.
         kind: what the file says the values are, one of KINDS.
         segments: what the file says about label values (segment names, colours).
-        labels: (nx, ny, nz) label values beside a density volume (npz), or None.
+        labels: (nx, ny, nz) label values beside a density volume (npz, colour PNG), or
+            None; an array or a source, like ``data``.
         numbered_by_reader: the label values are the reader's own numbering of segments or
             colours (seg.nrrd, colour PNGs), not the file's: materials match them by name or
             colour only.
@@ -42,12 +45,12 @@ class RawVolume:
 
     path: Path
     format: str
-    data: np.ndarray
+    data: np.ndarray | VoxelSource
     spacing_mm: np.ndarray
     origin_mm: np.ndarray
     direction: np.ndarray
     kind: str = "auto"
     segments: dict[int, Segment] = field(default_factory=dict)
-    labels: np.ndarray | None = None
+    labels: np.ndarray | VoxelSource | None = None
     numbered_by_reader: bool = False
     notes: list[str] = field(default_factory=list)
