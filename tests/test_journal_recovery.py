@@ -11,6 +11,7 @@ import io
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import time
 from pathlib import Path
@@ -21,6 +22,7 @@ import pytest
 from waiting import wait_until
 
 from burrforce.client.udp import BurrClient, ServerGone
+from burrforce.server.api import journal_format
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.journal_state import read_state
 from burrforce.server.api.models import Parameters
@@ -148,18 +150,33 @@ def journaled(tmp_path_factory):
     return {"folder": folder, "conn": c, "state": state, "swept": swept, "density": density}
 
 
+def _last_bricks_payload(data: bytes) -> tuple[int, int]:
+    """Where the log's last bricks record's payload starts, and its length: the newest
+    carving of its bricks, which no later record repeats (damage to an earlier record may
+    lose nothing, when a later one holds the same bricks again)."""
+    at, last = journal_format.FILE_HEAD_BYTES, None
+    while at + journal_format.RECORD_HEAD_BYTES <= len(data):
+        kind, _n, length, _crc = struct.unpack_from("<4sIII", data, at)
+        if kind == journal_format.BRICKS:
+            last = (at + journal_format.RECORD_HEAD_BYTES, length)
+        at += journal_format.RECORD_HEAD_BYTES + length
+    assert last is not None, "no bricks record in the log"
+    return last
+
+
 def _flip16(path: Path) -> None:
     data = bytearray(path.read_bytes())
+    start, length = _last_bricks_payload(bytes(data))
     for k in range(16):
-        data[len(data) // 3 + 13 * k] ^= 0xFF
+        data[start + k * length // 16] ^= 0xFF
     path.write_bytes(bytes(data))
 
 
 def _random4k(path: Path) -> None:
     data = bytearray(path.read_bytes())
-    at = len(data) // 2
+    at, _ = _last_bricks_payload(bytes(data))
     data[at:at + 4096] = np.random.default_rng(44).bytes(4096)
-    path.write_bytes(bytes(data[:max(len(data), at + 4096)]))
+    path.write_bytes(bytes(data))
 
 
 def _empty(path: Path) -> None:
