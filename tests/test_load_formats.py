@@ -585,3 +585,26 @@ def test_auto_detection_does_not_call_a_label_map_a_mask(tmp_path):
     mask = np.where(values > 0, np.uint8(255), np.uint8(0))
     np.save(tmp_path / "m.npy", mask)
     assert load_bone(tmp_path / "m.npy", LoadOptions(spacing_mm=(1, 1, 1))).kind == "density"
+
+
+def test_a_detached_data_file_must_lie_beside_its_header(tmp_path):
+    """An .nhdr's voxels may sit in a file beside it; one naming a path elsewhere (absolute,
+    or up through ..) is refused: an uploaded header must not read the server's files."""
+    folder = tmp_path / "bone"
+    folder.mkdir()
+    voxels = np.zeros((4, 4, 4), dtype=np.uint8)
+    voxels[1:3, 1:3, 1:3] = 1
+    (folder / "voxels.raw").write_bytes(voxels.tobytes())
+    (tmp_path / "outside.raw").write_bytes(voxels.tobytes())
+
+    def header(data_file: str) -> Path:
+        path = folder / "bone.nhdr"
+        path.write_text("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 4\n"
+                        f"spacings: 0.5 0.5 0.5\nencoding: raw\ndata file: {data_file}\n\n")
+        return path
+
+    bone = load_bone(header("voxels.raw"), LoadOptions(kind="labels"))
+    assert bone.grid.shape == (4, 4, 4) and (bone.grid.labels == 1).sum() == 8
+    for elsewhere in ("../outside.raw", str(tmp_path / "outside.raw"), "/etc/hostname"):
+        with pytest.raises(BoneFileError, match="lies outside the header's folder"):
+            load_bone(header(elsewhere), LoadOptions(kind="labels"))

@@ -105,8 +105,15 @@ def _data_file(path: Path, header: dict, data_start: int) -> tuple[Path, int]:
     if not isinstance(data_file, str) or data_file.startswith("LIST") or \
             ("%" in data_file and len(data_file.split()) >= 4):
         raise BoneFileError(path, "several detached data files are not supported")
-    source = Path(data_file)
-    return (source if source.is_absolute() else path.parent / data_file), 0
+    # Beside the header or below it, never elsewhere: a header is often an upload, and a
+    # detached file naming /etc/… or ../… would turn any readable file into voxels.
+    folder = path.parent.resolve()
+    source = (folder / data_file).resolve()
+    if not source.is_relative_to(folder):
+        raise BoneFileError(path, f"the detached data file {data_file!r} lies outside the "
+                                  "header's folder: put it beside the header and name it "
+                                  "relative to it")
+    return source, 0
 
 
 def _geometry(path: Path, header: dict, spatial: slice, options: LoadOptions):
