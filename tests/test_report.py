@@ -238,6 +238,26 @@ def test_cli_text_json_and_html(recorded, report, tmp_path, capsys):
     _check_page(page.read_text(encoding="utf-8"))
 
 
+@pytest.mark.skipif(shutil.which("script") is None, reason="needs util-linux's script (a pty)")
+def test_on_a_terminal_the_report_prints_each_line_once(recorded):
+    """On a terminal the replay draws a bar on stderr; the report itself must come out once
+    (a first run once showed its last lines twice)."""
+    import re
+    import subprocess
+    import sys
+
+    command = f"stty cols 100; {sys.executable} -m burrforce.server.cli report " \
+              f"'{recorded['path']}'"
+    out = subprocess.run(["script", "-qec", command, "/dev/null"], capture_output=True,
+                         text=True, timeout=300, stdin=subprocess.DEVNULL)
+    assert out.returncode == 0, out.stdout + out.stderr
+    screen = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out.stdout)
+    lines = [line.strip() for part in screen.split("\n") for line in part.split("\r")]
+    report = report_from_recording(recorded["path"]).format_text().splitlines()
+    for line in report:
+        assert lines.count(line.strip()) == 1, (line, screen)
+
+
 def test_cli_bad_input_is_exit_2_without_a_traceback(tmp_path, capsys):
     (tmp_path / "plain.txt").write_text("x")
     for bad in (tmp_path / "missing.burrrec", tmp_path / "plain.txt", tmp_path):
