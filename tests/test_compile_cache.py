@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -31,13 +32,20 @@ def _env(**extra: str) -> dict[str, str]:
 
 
 def _compile(env: dict[str, str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "compile"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env)
+    """``burrforce compile``, printing into a file of its own: two at once, one waits on the
+    fill lock for the other, and a pipe nobody reads yet would stop the one it waits for."""
+    out = tempfile.TemporaryFile("w+")
+    proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "compile"],
+                            stdout=out, stderr=subprocess.STDOUT, text=True, env=env)
+    proc.printed = out  # type: ignore[attr-defined]
+    return proc
 
 
 def _finish(proc: subprocess.Popen) -> str:
-    out, _ = proc.communicate(timeout=600)
+    proc.wait(timeout=600)
+    with proc.printed as f:  # type: ignore[attr-defined]
+        f.seek(0)
+        out = f.read()
     assert proc.returncode == 0, out
     return out
 
