@@ -132,6 +132,7 @@ def test_serve_demo_prints_the_live_view_and_keeps_cutting(tmp_path):
         assert "--demo: another client streams on session" in seen
         # serve's status line, every few seconds while packets arrive: the demo's too.
         assert "packets/s  |F|" in seen
+        assert "'new_stream'" not in seen  # a hello answered is a handshake, not a drop
         # Stopped as Ctrl-C or `timeout` stop it: the signal reaches the whole process group,
         # so the groove being cut ends (killed) a moment before serve begins to stop.
         deadline = time.monotonic() + 30

@@ -585,8 +585,8 @@ def _report(stats, session_id: int, done: threading.Event, say, devices=None) ->
             rate = (received - last_received) / (now - last_t)
             s = latest["sessions"].get(session_id, {})
             removed = sum(s.get("removed_mm3", {}).values()) if s else 0.0
-            drops = {k: v for k, v in counters.items()
-                     if v and k not in ("received", "replied", "noticed", *LOOP_COUNTERS)}
+            quiet = ("received", "replied", "noticed", "new_stream", *LOOP_COUNTERS)  # hellos
+            drops = {k: v for k, v in counters.items() if v and k not in quiet}
             tick = s.get("tick_p99_us")
             device = ""
             process = devices.loops.get(session_id) if devices is not None else None
