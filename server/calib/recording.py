@@ -27,13 +27,14 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ..whole_files import WholeFile
 
 #: Fewer samples than this cannot hold a free-spinning and a burring region.
 MIN_SAMPLES = 64
@@ -511,18 +512,11 @@ def _csv_value(value: object) -> str:
 
 
 def _write_atomic(path: Path, write: Callable[[object], object]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            write(handle)
-        # mkstemp makes the file private; a recording is data to share, so the umask decides.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    # A recording is data to share: the umask decides its mode, not mkstemp's 0600.
+    umask = os.umask(0)
+    os.umask(umask)
+    with WholeFile(path, permissions=0o666 & ~umask) as handle:
+        write(handle)
 
 
 def save_recording(path: str | Path, recording: Recording) -> Path:
