@@ -407,7 +407,8 @@ def test_metrics(stack, api):
                      headers={"Authorization": f"Bearer {TOKEN}"}).text
     assert 'burrforce_packets_total{outcome="received"}' in text
     assert 'outcome="wake_' not in text  # the loop's polling is not a datagram outcome
-    for event in ("caught", "missed", "starved", "busy", "quiet", "preempted"):
+    for event in ("caught", "missed", "starved", "busy", "quiet", "preempted", "early",
+                  "irregular"):
         assert f'burrforce_wake_ahead_total{{event="{event}"}}' in text
     assert "burrforce_wake_poll_seconds_total" in text
     assert f'burrforce_tick_seconds_bucket{{le="+Inf",session="{s["id"]}"}}' in text

@@ -4,6 +4,8 @@ stream and answers every packet, and one that does not."""
 
 from __future__ import annotations
 
+import select
+import socket
 import time
 
 import pytest
@@ -14,6 +16,7 @@ from hypothesis_profiles import examples
 from burrforce.client.udp import BurrClient
 from burrforce.proto.tag import new_key
 from burrforce.server.hotloop import HotLoopConfig, HotLoopProcess, SessionConfig, SessionSpec
+from burrforce.server.hotloop.loop import _poll_ahead
 from burrforce.server.hotloop.wake import (
     BACKOFF_MAX_S,
     BACKOFF_S,
@@ -74,6 +77,7 @@ def test_a_pause_or_a_burst_is_not_a_period():
     t = last + int(PERIOD_MAX_S * 1e9) + 1
     wake.arrived("a", t + 50_000)  # a burst: 50 µs apart
     assert wake.next_poll(t + 60_000) is None
+    assert wake.counters["wake_irregular"] == 2  # each one counted: it was not polled for
 
 
 def test_the_period_follows_the_stream():
@@ -160,6 +164,21 @@ def test_the_counters_are_kept_in_the_given_dict():
     start, _ = wake.next_poll(t + 1000)
     wake.polled(start, start + 3 * MS // 2, True)
     assert counters["wake_caught"] == 1 and counters["wake_poll_ms"] == 1
+
+
+def test_a_datagram_before_the_window_wakes_the_loop_and_counts_as_early():
+    wake = _wake()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx, select.epoll() as poller:
+        rx.bind(("127.0.0.1", 0))
+        poller.register(rx.fileno(), select.EPOLLIN)
+        tx.sendto(b"x", rx.getsockname())
+        now = time.monotonic_ns()
+        began = time.perf_counter()
+        events = _poll_ahead(poller, (now + 2 * S, now + 3 * S), wake, time.monotonic_ns)
+        assert time.perf_counter() - began < 1.0  # woken by the datagram, not the window
+        assert [fd for fd, _ in events] == [rx.fileno()]
+    assert wake.counters["wake_early"] == 1 and wake.counters["wake_caught"] == 0
 
 
 @pytest.mark.parametrize("text, running", [
@@ -258,9 +277,12 @@ def test_a_hot_loop_answers_a_1khz_stream_polling_for_it_or_not(lead_us):
     wake = {k: counters[k] for k in WAKE_COUNTERS}
     if lead_us:
         # It predicted the stream: each packet after the first few was polled for, or not
-        # for a reason it counted. Some were caught polling, unless every core was taken
-        # the whole time (another suite beside this one): then it rightly never polled.
-        assert wake["wake_caught"] > 0 or wake["wake_busy"] > PACKETS // 2, wake
+        # for a reason it counted (on a loaded machine the client's own timing makes many
+        # early or irregular). Some were caught polling, unless every core was taken the
+        # whole time (another suite beside this one): then it rightly never polled, and
+        # the client's own timing was as uneven as the machine.
+        assert (wake["wake_caught"] > 0
+                or wake["wake_busy"] + wake["wake_irregular"] > PACKETS // 2), wake
         assert sum(wake[k] for k in WAKE_COUNTERS if k != "wake_poll_ms") > PACKETS // 2, wake
     else:
         assert not any(wake.values()), wake

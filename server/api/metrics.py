@@ -152,8 +152,10 @@ class LoopStats:
             "caught (a datagram came while polling), missed (a prediction passed without its "
             "datagram), starved / busy / quiet (the loop blocked instead of polling: its CPU "
             "share was spent / every core was taken / it was backing off), preempted (a poll "
-            "cut short by a task holding the core)", labels=["event"])
-        for event in ("caught", "missed", "starved", "busy", "quiet", "preempted"):
+            "cut short by a task holding the core), early (a datagram came before the window "
+            "opened), irregular (an interval that was no stream's period)", labels=["event"])
+        for event in ("caught", "missed", "starved", "busy", "quiet", "preempted", "early",
+                      "irregular"):
             wake.add_metric([event], counters.get(f"wake_{event}", 0))
         yield wake
         yield CounterMetricFamily(

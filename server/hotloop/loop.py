@@ -177,6 +177,7 @@ def _poll_ahead(poller: select.epoll, window: tuple[int, int], wake: WakeAhead,
         ready = select.select((poller,), (), (), (start - now) * 1e-9)[0]
         wake.woke(clock())
         if ready:
+            wake.early()
             return poller.poll(0)
     t0 = clock()
     yield_cpu = os.sched_yield

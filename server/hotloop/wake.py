@@ -65,9 +65,11 @@ PREEMPT_BURST = 2.0
 #: Counter names, in the dispatcher's counters: windows that caught a datagram; predictions
 #: whose time passed without their datagram; times the loop blocked instead of polling for
 #: want of CPU share, because every core was taken, or while backing off; polls cut short by
-#: a task holding the core; ms polled.
+#: a task holding the core; ms polled; datagrams that came while the loop slept towards its
+#: window (earlier than the lead); intervals that were no stream's period (a pause or a
+#: burst: no prediction until the next).
 WAKE_COUNTERS = ("wake_caught", "wake_missed", "wake_starved", "wake_busy", "wake_quiet",
-                 "wake_preempted", "wake_poll_ms")
+                 "wake_preempted", "wake_poll_ms", "wake_early", "wake_irregular")
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,7 @@ class WakeAhead:
         interval = t_ns - last
         if not PERIOD_MIN_S * 1e9 <= interval <= PERIOD_MAX_S * 1e9:
             self._due.pop(key, None)  # a pause or a burst: predict again from the next one
+            self.counters["wake_irregular"] += 1
             return
         period = self._period.get(key)
         period = interval if period is None else period + PERIOD_ALPHA * (interval - period)
@@ -245,6 +248,10 @@ class WakeAhead:
         self.counters["wake_poll_ms"] = self._poll_ns // 1_000_000
         if caught:
             self.counters["wake_caught"] += 1
+
+    def early(self) -> None:
+        """A datagram came while the loop slept towards its window (before the lead)."""
+        self.counters["wake_early"] += 1
 
     def close(self) -> None:
         """Release the runnable-task reader (when it is the default one)."""
