@@ -144,7 +144,11 @@ def run_json(args: list[str], timeout_s: float = 180.0, **kwargs) -> dict:
 def check_groove(got: dict, reference: dict, max_lost: int = 20) -> None:
     """An SDK's groove against the Python client's: the same cut, steady forces within 1 %."""
     assert got["ticks"] == TICKS, got
-    assert got["lost"] <= max_lost, got
+    # Packets lost on the way: of those sent. A tick the client skipped because it woke late
+    # (a busy machine: another process took the core) is no packet lost, and is bounded apart.
+    lost = got["sent"] - got["replies"] if "sent" in got else got["lost"]
+    assert lost <= max_lost, got
+    assert got.get("skipped_ticks", 0) <= 0.05 * TICKS, got
     assert got["steady_ticks"] >= 0.9 * reference["steady_ticks"], (got, reference)
     for name in ("steady_feed_N", "steady_lateral_N", "steady_normal_N", "steady_force_N"):
         scale = max(abs(reference[name]), 0.01 * abs(reference["steady_force_N"]))
