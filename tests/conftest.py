@@ -148,8 +148,9 @@ def pytest_cmdline_main(config: pytest.Config) -> None:
     """The fast tier, run as the README types it, spreads over every core (pytest-xdist), a
     module's tests on one worker so its module-scoped servers start once: most of its tests
     wait on sockets and processes, not the CPU (on 2 cores it takes about two thirds of the
-    time it takes in one process). ``-n 0`` runs it in one process; ``--rest``, ``--all`` and named tests run in one
-    unless ``-n`` says otherwise (compilers, containers and timing-sensitive device runs)."""
+    time it takes in one process). ``-n 0`` runs it in one process; ``--rest``, ``--all`` and
+    named tests run in one unless ``-n`` says otherwise (compilers, containers and
+    timing-sensitive device runs)."""
     if (hasattr(config, "workerinput") or not config.pluginmanager.hasplugin("xdist")
             or config.getoption("numprocesses", None) is not None
             or config.getoption("collectonly") or _tier_filter(config) != FAST_TIER):
