@@ -155,6 +155,10 @@ def pytest_cmdline_main(config: pytest.Config) -> None:
             or config.getoption("numprocesses", None) is not None
             or config.getoption("collectonly") or _tier_filter(config) != FAST_TIER):
         return
+    if config.getoption("cov_source", None):
+        # pytest-cov chose its mode (one process) before this hook: with --cov, spreading
+        # takes an explicit -n (as .ci/run gives it).
+        return
     config.option.numprocesses = "auto"
     if config.option.dist == "no":
         config.option.dist = "loadscope"

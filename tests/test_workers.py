@@ -23,6 +23,7 @@ from burrforce.proto.messages import UNKNOWN_SESSION
 from burrforce.server.api.config import ServeConfig
 from burrforce.server.api.models import Parameters
 from burrforce.server.api.stack import ServerStack
+from burrforce.server.hotloop.pool import spawn_pool, start_pool
 
 TOKEN = "workers-test-token-0123456789"
 
@@ -218,6 +219,22 @@ def test_a_busy_port_in_the_workers_range_is_refused_before_anything_starts(tmp_
         with pytest.raises(RuntimeError, match=f"UDP port {port + 1}"):
             ServerStack(ServeConfig(http_port=0, udp_port=port, data_dir=tmp_path / "d",
                                     workers=2), TOKEN, journal=False).start_backend()
+
+
+def test_a_pool_spawned_ahead_starts_those_processes_and_refuses_a_wrong_count():
+    """``serve`` spawns its hot loops before importing its web stack (their interpreters
+    start side by side with it) and starts those very processes later."""
+    spawned = spawn_pool("127.0.0.1", 0, 1)
+    pids = [hot.pid for hot in spawned]
+    with pytest.raises(ValueError, match="1 spawned hot loops for 2 workers"):
+        start_pool("127.0.0.1", 0, 2, spawned=spawned)
+    pool = start_pool("127.0.0.1", 0, 1, spawned=spawned)
+    try:
+        assert pool is spawned and [hot.pid for hot in pool] == pids
+        assert pool[0].call("stats")["counters"]["received"] == 0
+    finally:
+        for hot in pool:
+            hot.stop()
 
 
 @pytest.mark.parametrize("text,cap", [("max 100000\n", None), ("200000 100000\n", 2),

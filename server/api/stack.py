@@ -55,14 +55,15 @@ class ServerStack:
         self.server: uvicorn.Server | None = None
         self._thread: threading.Thread | None = None
 
-    def start_backend(self) -> None:
+    def start_backend(self, spawned: list[HotLoopProcess] | None = None) -> None:
         """The hot loops, the control plane, the statistics poller, the supervisor and the
-        journal, after resuming the journaled sessions (no HTTP yet).
+        journal, after resuming the journaled sessions (no HTTP yet). ``spawned``: the hot
+        loops' processes ``api.workers.spawn_hot_loops`` made ahead for this config.
 
         Raises:
             RuntimeError: a worker's UDP port is taken, or a worker failed to start.
         """
-        workers = start_hot_loops(self.config)
+        workers = start_hot_loops(self.config, spawned)
         try:
             self.plane = plane = ControlPlane(self.config, workers)
         except BaseException:

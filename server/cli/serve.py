@@ -185,10 +185,6 @@ def _say_realtime(say, plane) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ..api.models import Parameters
-    from ..api.sources import file_source
-    from ..api.stack import ServerStack
-
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "workers": args.workers, "wake_ahead_us": args.wake_ahead_us,
              "wake_cpu_share": args.wake_cpu_share, "realtime": args.realtime,
@@ -215,34 +211,50 @@ def main(args: argparse.Namespace) -> int:
     # server there would resume the first one's sessions.
     data_lock = DataDirLock(Path(config.data_dir))
     data_lock.acquire()
-    token, new_token = resolve_token(config)
-    bone = config.bone
-    say = functools.partial(print, flush=True)
-    t0 = time.monotonic()
-    # While the kernels compile (first start) or the hot loops warm up (other processes), this
-    # process loads the kernels its own bone build needs: a process's first cached kernel
-    # costs ~1 s of numba set-up, which would otherwise follow instead of overlapping.
-    threading.Thread(target=load_bone_kernels, name="burrforce-kernels", daemon=True).start()
-    first_start = not compile_cache.is_complete()
-    if first_start:
-        compile_first_start(say)
-    say(f"loading {bone}...")
-    from ..api.journal import discard, discard_session
+    # The hot loops' interpreters start now and import beside this one, which imports the web
+    # stack and reads the token and the journal meanwhile: on two cores the two start-ups
+    # overlap instead of following each other.
+    from ..api.workers import spawn_hot_loops
 
-    if args.fresh:
-        n = discard(Path(config.data_dir))
-        if n:
-            say(f"--fresh: {n} journaled session(s) forgotten")
-    elif args.demo and discard_session(Path(config.data_dir), config.session_id):
-        # The demo cuts a groove and compares it with the model: on fresh bone, not in the
-        # groove the last demo left.
-        say(f"--demo: session {config.session_id} starts on fresh bone (its journal from the "
-            "last run is forgotten; other sessions are resumed)")
-    stack = ServerStack(config, token, say=say)
+    spawned = spawn_hot_loops(config)
+    try:
+        from ..api.models import Parameters
+        from ..api.sources import file_source
+        from ..api.stack import ServerStack
+
+        token, new_token = resolve_token(config)
+        bone = config.bone
+        say = functools.partial(print, flush=True)
+        t0 = time.monotonic()
+        # While the kernels compile (first start) or the hot loops warm up (other processes),
+        # this process loads the kernels its own bone build needs: a process's first cached
+        # kernel costs ~1 s of numba set-up, which would otherwise follow, not overlap.
+        threading.Thread(target=load_bone_kernels, name="burrforce-kernels",
+                         daemon=True).start()
+        first_start = not compile_cache.is_complete()
+        if first_start:
+            compile_first_start(say)
+        say(f"loading {bone}...")
+        from ..api.journal import discard, discard_session
+
+        if args.fresh:
+            n = discard(Path(config.data_dir))
+            if n:
+                say(f"--fresh: {n} journaled session(s) forgotten")
+        elif args.demo and discard_session(Path(config.data_dir), config.session_id):
+            # The demo cuts a groove and compares it with the model: on fresh bone, not in
+            # the groove the last demo left.
+            say(f"--demo: session {config.session_id} starts on fresh bone (its journal from "
+                "the last run is forgotten; other sessions are resumed)")
+        stack = ServerStack(config, token, say=say)
+    except BaseException:
+        for hot in spawned:
+            hot.kill()
+        raise
     conn_path = conn = None
     filler = None
     try:
-        stack.start_backend()
+        stack.start_backend(spawned)
         plane = stack.plane
         if config.realtime:
             _say_realtime(say, plane)

@@ -69,23 +69,50 @@ def check_ports_free(host: str, udp_port: int, workers: int) -> None:
                 f"cannot be bound on {host}: {exc.strerror or exc}") from None
 
 
-def start_pool(host: str, udp_port: int, workers: int,
-               timeout_s: float = START_TIMEOUT_S,
-               wake: WakeConfig = DEFAULT_WAKE, realtime: bool = False) -> list[HotLoopProcess]:
-    """Start ``workers`` hot loops with no sessions, worker i on ``udp_port + i`` (or an
-    ephemeral port each when ``udp_port`` is 0), each waking ahead as ``wake`` says, and
-    asking for the real-time scheduler with ``realtime``. The interpreters start and warm up
-    side by side, not one after the other.
+def spawn_pool(host: str, udp_port: int, workers: int, wake: WakeConfig = DEFAULT_WAKE,
+               realtime: bool = False) -> list[HotLoopProcess]:
+    """The pool's processes spawned, their ports checked, not yet started: each interpreter
+    imports while the caller goes on (``serve`` imports its web stack meanwhile: on two cores
+    the two start-ups overlap instead of following each other). :func:`start_pool` starts
+    them; a caller that gives up first kills them (or exits: they end with their pipe).
 
     Raises:
         ValueError: ``workers`` < 1.
-        RuntimeError: a port is taken or a worker failed to start (every worker is stopped).
+        RuntimeError: a port is taken (nothing is spawned).
     """
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     check_ports_free(host, udp_port, workers)
     pool = [HotLoopProcess(HotLoopConfig(host, port, (), wake, realtime))
             for port in worker_ports(udp_port, workers)]
+    try:
+        for hot in pool:
+            hot.spawn()
+    except BaseException:
+        for hot in pool:
+            hot.kill()
+        raise
+    return pool
+
+
+def start_pool(host: str, udp_port: int, workers: int,
+               timeout_s: float = START_TIMEOUT_S,
+               wake: WakeConfig = DEFAULT_WAKE, realtime: bool = False,
+               spawned: list[HotLoopProcess] | None = None) -> list[HotLoopProcess]:
+    """Start ``workers`` hot loops with no sessions, worker i on ``udp_port + i`` (or an
+    ephemeral port each when ``udp_port`` is 0), each waking ahead as ``wake`` says, and
+    asking for the real-time scheduler with ``realtime``. The interpreters start and warm up
+    side by side, not one after the other. ``spawned``: the processes :func:`spawn_pool`
+    made for these arguments, started instead of spawning new ones.
+
+    Raises:
+        ValueError: ``workers`` < 1, or ``spawned`` is not that many.
+        RuntimeError: a port is taken or a worker failed to start (every worker is stopped).
+    """
+    if spawned is not None and len(spawned) != workers:
+        raise ValueError(f"{len(spawned)} spawned hot loops for {workers} workers")
+    pool = spawned if spawned is not None else spawn_pool(host, udp_port, workers, wake,
+                                                          realtime)
     errors: list[str] = []
 
     def start(i: int) -> None:
@@ -95,8 +122,6 @@ def start_pool(host: str, udp_port: int, workers: int,
             errors.append(f"worker {i}: {exc}" if workers > 1 else str(exc))
 
     try:
-        for hot in pool:
-            hot.spawn()
         threads = [threading.Thread(target=start, args=(i,), daemon=True)
                    for i in range(workers)]
         for t in threads:
