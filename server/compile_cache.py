@@ -61,6 +61,12 @@ def kernels_digest(roots: tuple[tuple[Path, str], ...] = PACKAGE_ROOTS) -> str:
     return digest.hexdigest()[:12]
 
 
+@cache
+def _kernel_module_paths(roots: tuple[tuple[Path, str], ...]) -> tuple[Path, ...]:
+    """:func:`kernel_modules`' files, in name order, read once a process."""
+    return tuple(path for _, path in sorted(kernel_modules(roots).items()))
+
+
 def kernel_modules(roots: tuple[tuple[Path, str], ...] = PACKAGE_ROOTS) -> dict[str, Path]:
     """The modules :func:`kernels_digest` covers, by import name: those that import numba or
     the kernel decorators at their top level, and the closure of their top-level imports of
@@ -170,22 +176,58 @@ def cache_dir(environ: MutableMapping[str, str] | None = None) -> Path | None:
     return Path(value) if value else None
 
 
+def sources_stamp(roots: tuple[tuple[Path, str], ...] = PACKAGE_ROOTS) -> str:
+    """12 hex digits over where the kernels' modules are and their modification times and
+    sizes: what numba itself checks before it loads a cached kernel (it keeps a checkout's
+    kernels apart from another checkout's, and treats a source file whose time changed as
+    stale). A second clone of the project, or a file checked out again, thus shares the
+    directory :func:`default_cache_dir` names (same content, same digest) but not numba's
+    kernels in it."""
+    digest = hashlib.sha256()
+    for path in _kernel_module_paths(roots):
+        try:
+            st = path.stat()
+        except OSError:
+            continue
+        digest.update(f"{path}\0{st.st_mtime_ns}\0{st.st_size}\0".encode())
+    return digest.hexdigest()[:12]
+
+
+def _marker(directory: Path) -> Path:
+    return directory / f"complete-{_cpu()}"
+
+
 def is_complete(directory: Path | None = None) -> bool:
     """Whether ``burrforce compile`` has filled the cache (``directory``, else
-    :func:`cache_dir`) for this CPU: every kernel the server runs loads from it, none
-    compiles. Until it has, a hot loop warms only its sessions' burrs."""
+    :func:`cache_dir`) for this CPU and these very source files (:func:`sources_stamp`):
+    every kernel the server runs loads from it, none compiles. Until it has, a hot loop
+    warms only its sessions' burrs, and ``serve`` compiles what a session needs first."""
     directory = directory if directory is not None else cache_dir()
-    return directory is not None and (directory / f"complete-{_cpu()}").is_file()
+    if directory is None:
+        return False
+    try:
+        stamps = _marker(directory).read_text().split()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return sources_stamp() in stamps
 
 
 def mark_complete(directory: Path | None = None) -> None:
-    """Note that every kernel is in the cache (``burrforce compile``, at its end)."""
+    """Note that every kernel is in the cache for these source files (``burrforce compile``,
+    at its end). Other checkouts' stamps in the marker are kept: each has its own kernels in
+    the same directory."""
     directory = directory if directory is not None else cache_dir()
     if directory is None:
         return
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        (directory / f"complete-{_cpu()}").write_text(f"burrforce {__version__}\n")
+        marker = _marker(directory)
+        try:
+            stamps = [w for w in marker.read_text().split()[2:] if len(w) == 12]
+        except (OSError, UnicodeDecodeError):
+            stamps = []
+        stamps = [*dict.fromkeys([*stamps[-15:], sources_stamp()])]
+        marker.write_text(f"burrforce {__version__}\n" + "\n".join(stamps) + "\n")
     except OSError:
         pass  # a cache numba cannot write either: every start warms only its sessions' burrs
 

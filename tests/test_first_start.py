@@ -31,6 +31,36 @@ def test_the_complete_mark_is_per_cache_and_cpu(tmp_path, monkeypatch):
     assert not compile_cache.is_complete(tmp_path)
 
 
+def test_the_complete_mark_is_per_checkout_and_source_times(tmp_path, monkeypatch):
+    """numba keeps each checkout's kernels apart (by the source folder's path) and treats a
+    source whose time changed as stale: the mark says complete only for the sources that
+    were compiled, and keeps every checkout's mark."""
+    package = tmp_path / "src" / "pkg"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    kernel = package / "kernels.py"
+    kernel.write_text("import numba\n")
+    roots = ((package, "pkg"),)
+    stamp = compile_cache.sources_stamp(roots)
+    assert compile_cache.sources_stamp(roots) == stamp
+    os.utime(kernel, ns=(0, kernel.stat().st_mtime_ns + 10**9))  # checked out again
+    assert compile_cache.sources_stamp(roots) != stamp
+    clone = tmp_path / "clone" / "pkg"
+    shutil.copytree(package, clone)
+    assert compile_cache.sources_stamp(((clone, "pkg"),)) != stamp  # another checkout
+
+    cache = tmp_path / "cache"
+    monkeypatch.setattr(compile_cache, "sources_stamp", lambda: "aaaaaaaaaaaa")
+    compile_cache.mark_complete(cache)
+    assert compile_cache.is_complete(cache)
+    monkeypatch.setattr(compile_cache, "sources_stamp", lambda: "bbbbbbbbbbbb")
+    assert not compile_cache.is_complete(cache)  # this checkout's kernels are not there
+    compile_cache.mark_complete(cache)
+    assert compile_cache.is_complete(cache)
+    monkeypatch.setattr(compile_cache, "sources_stamp", lambda: "aaaaaaaaaaaa")
+    assert compile_cache.is_complete(cache)  # the first checkout's mark is kept
+
+
 def test_one_compiler_fills_a_cache_at_a_time(tmp_path):
     holder = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(f"""
