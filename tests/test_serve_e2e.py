@@ -159,3 +159,14 @@ def _demo_client(serve_pid: int) -> int | None:
         except OSError:
             continue  # gone meanwhile
     return None
+
+
+def test_a_bone_the_control_plane_refuses_is_an_error_not_a_traceback(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "burrforce.server.cli", "serve", "--bone", "phantom:nope",
+         "--http-port", "0", "--udp-port", "0", "--data-dir", str(tmp_path / "data"),
+         "--connection-file", str(tmp_path / "conn.json"), "--no-auth"],
+        capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "burrforce serve: error: unknown phantom 'nope'; built in:" in done.stderr
+    assert "Traceback" not in done.stderr

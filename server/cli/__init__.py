@@ -162,4 +162,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        # What the control plane refuses (an unknown phantom or library file given to
+        # `serve --bone`) says why, as it would over REST, not with a traceback.
+        from ..api.errors import ApiError
+
+        if not isinstance(exc, ApiError):
+            raise
+        print(f"burrforce {args.command}: error: {exc.detail}", file=sys.stderr)
+        return 2
 
