@@ -1,6 +1,7 @@
 """The decorators of the kernels that run every tick or every packet.
 
-They are ``@njit(cache=True, nogil=True)`` plus ``_nrt=False``: compiled without numba's
+They are ``@njit(cache=True, nogil=True)`` (the inlined helpers without ``cache``: see
+``hot_inline``) plus ``_nrt=False``: compiled without numba's
 reference counting (where numba knows that private option: ``_without_reference_counting``).
 These kernels only read and write arrays their caller owns and never allocate, so the counts
 protect nothing, yet numba keeps an atomic increment and decrement per
@@ -55,7 +56,13 @@ hot_kernel = njit(**_OPTIONS)
 #: IR were half of it), and 15 s this way, with the same inlined code to run (the round
 #: tick's instruction count within 3.5 %, the revolved one's 22 % lower: its sampler, a
 #: call of ~100 arguments before, is now inlined too).
-hot_inline = njit(**_OPTIONS, forceinline=True)
+#:
+#: Not cached on its own: its code lives in its callers' cache entries (a caller loaded
+#: from the cache never loads it), so an entry of its own would only be read by a process
+#: that compiles another caller, and writing one costs more than it saves there. Measured
+#: on a first start's critical path, the round burr's tick (49 such helpers): 26–28 s with
+#: entries, 22–24 s without; ``burrforce compile`` as a whole used the same CPU time.
+hot_inline = njit(**{**_OPTIONS, "cache": False}, forceinline=True)
 
 
 def hot_hook(stub):

@@ -103,6 +103,8 @@ SLOW: tuple[str, ...] = (
     # serve on an empty cache until its background compile is done, then again; the jobs,
     # their progress and the tool change after a first start stay in the fast tier.
     "test_first_start.py::test_a_first_serve_compiles_with_progress_then_the_rest_behind_it",
+    "test_first_start.py::test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_"
+    "compile_nothing",
     # 100 000 datagrams; the live server's other tests stay.
     "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
     # A 1 kHz stream through a loop restart, counting exactly one outage: beside the other

@@ -155,7 +155,7 @@ def test_bench_accuracy_rejects_bad_options(argv, capsys):
 
 def test_serve_demo_starts_over_the_loaded_bone():
     from burrforce.server.bone import phantom
-    from burrforce.server.cli.serve import demo_start_mm
+    from burrforce.server.cli.serve_demo import demo_start_mm
 
     grid = phantom("workpiece", 0.5).grid  # the block: x 0–26, y −8–8 mm
     info = {"shape": list(grid.shape), "spacing_mm": grid.spacing_mm.tolist(),
@@ -192,15 +192,59 @@ def test_bench_accuracy_in_a_checkout_leaves_git_status_clean(tmp_path):
 
 
 def test_the_parser_leaves_the_slow_scipy_modules_to_the_commands_that_use_them():
-    """Every command builds the whole parser, so what its modules import at the top delays
-    `serve`'s start and `report` alike: scipy.integrate (the reference model) and scipy.stats
-    (the calibration fit) are imported where they are used."""
-    code = ("import sys\n"
-            "from burrforce.server.cli import build_parser\n"
-            "build_parser()\n"
-            "print(sorted(m for m in ('scipy.integrate', 'scipy.stats', 'scipy.optimize')"
-            " if m in sys.modules))\n")
+    """The whole parser (``burrforce --help``) imports every command's module, so what they
+    import at the top delays it: scipy.integrate (the reference model) and scipy.stats (the
+    calibration fit) are imported where they are used."""
+    assert _imported("from burrforce.server.cli import build_parser\n"
+                     "build_parser()\n",
+                     ("scipy.integrate", "scipy.stats", "scipy.optimize")) == []
+
+
+def _imported(code: str, modules: tuple[str, ...]) -> list[str]:
+    """Which of ``modules`` a new interpreter has imported after running ``code``."""
+    code += f"import sys\nprint(sorted(m for m in {modules!r} if m in sys.modules))\n"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    return json.loads(out.stdout.replace("'", '"'))
+
+
+def test_serve_spawns_its_hot_loops_before_numba_the_bone_or_the_web_stack_load():
+    """`burrforce serve` builds its own parser only, and what it runs up to spawning its hot
+    loops imports neither numba, nor the bone, nor FastAPI: their interpreters start ~0.7 s
+    sooner, beside this one's imports."""
+    assert _imported("from burrforce.server.cli import _command_named, build_parser\n"
+                     "from burrforce.server.cli.serve import main\n"
+                     "build_parser(_command_named(['serve', '--demo'])).parse_args(['serve'])\n"
+                     "from burrforce.server.api.data_lock import DataDirLock\n"
+                     "from burrforce.server.hotloop.pool import spawn_pool\n",
+                     ("numba", "burrforce.server.bone", "fastapi", "scipy")) == []
+
+
+def test_a_command_alone_parses_and_helps_as_in_the_whole_parser():
+    from burrforce.server.cli import COMMANDS, _command_named, build_parser
+
+    assert _command_named(["serve", "--demo"]) == "serve"
+    assert _command_named(["client", "demo"]) == "client"
+    assert _command_named(["--help"]) is None and _command_named([]) is None
+    assert _command_named(["nope"]) is None and _command_named(["--", "bench"]) == "bench"
+    whole = build_parser()
+    for command in COMMANDS:
+        alone = build_parser(command)
+        sub = next(a for a in whole._actions if a.dest == "command").choices[command]
+        sub_alone = next(a for a in alone._actions if a.dest == "command").choices[command]
+        assert sub_alone.format_help() == sub.format_help()
+    with pytest.raises(SystemExit):
+        main(["nope"])
+
+
+def test_serve_counts_ready_from_the_process_start():
+    """"ready in N s" counts the interpreter's start and the imports too (what a user waits)."""
+    code = ("import time\n"
+            "time.sleep(0.4)\n"
+            "from burrforce.server.cli.invocation import process_age_s\n"
+            "print(process_age_s())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert 0.4 <= float(out.stdout) < 30.0

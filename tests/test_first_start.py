@@ -207,6 +207,44 @@ def test_a_tool_change_loads_the_other_tick_before_the_burr_changes(tmp_path):
     assert "compiled by the next tick 0" in done.stdout
 
 
+def test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_compile_nothing(tmp_path):
+    """What ``serve`` compiles before it is ready (the round tick in one process, the packet
+    path, the sessions without a tick and the phantoms in another) is all its hot loop's
+    warm-up and its default bone's build then run: they load, nothing compiles."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    compile_first = ("from burrforce.server.cli.compile_jobs import FIRST_START\n"
+                     "from burrforce.server.cli.compile_run import run_jobs\n"
+                     "if __name__ == '__main__':\n"
+                     "    run_jobs(FIRST_START, 2, print, bar=False)\n")
+    script = tmp_path / "first.py"
+    script.write_text(compile_first)
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    serve_like = textwrap.dedent("""
+        from numba.core import event
+        compiled = []
+        class Count(event.Listener):
+            def on_start(self, e): compiled.append(e.data["dispatcher"].py_func.__qualname__)
+            def on_end(self, e): pass
+        event.register("numba:compile", Count())
+        from burrforce.server.bone import phantom
+        from burrforce.server.bone.shared import publish, run_directory
+        from burrforce.server.hotloop.dispatch import Dispatcher
+        from burrforce.server.hotloop.spec import SessionSpec, build_session
+        ref = publish(phantom("temporal"), run_directory(), "first")
+        dispatcher = Dispatcher()
+        dispatcher.add(build_session(SessionSpec(bone=ref)))
+        dispatcher.warm_up()
+        print("compiled", compiled)
+    """)
+    done = subprocess.run([sys.executable, "-c", serve_like], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "compiled []" in done.stdout, done.stdout
+
+
 def test_a_first_serve_compiles_with_progress_then_the_rest_behind_it(tmp_path):
     """Empty cache and HOME: serve compiles what its session needs (a line per job when not
     on a terminal), gets ready, and fills the rest of the cache in the background, which

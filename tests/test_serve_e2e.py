@@ -170,3 +170,20 @@ def test_a_bone_the_control_plane_refuses_is_an_error_not_a_traceback(tmp_path):
     assert done.returncode == 2, done.stdout + done.stderr
     assert "burrforce serve: error: unknown phantom 'nope'; built in:" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("bone, says", [
+    ("phantom:nope", "unknown phantom 'nope'"),
+    ("missing.nrrd", "missing.nrrd"),
+])
+def test_a_bad_bone_is_refused_before_anything_starts(tmp_path, bone, says):
+    """Before the data directory is locked or a hot loop spawned: nothing to stop, at once."""
+    done = subprocess.run(
+        [sys.executable, "-m", "burrforce.server.cli", "serve", "--bone", bone,
+         "--http-port", "0", "--udp-port", "0", "--data-dir", str(tmp_path / "data"),
+         "--connection-file", str(tmp_path / "conn.json"), "--no-auth"],
+        capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL, cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.startswith("burrforce serve: error: ") and says in done.stderr
+    assert "Traceback" not in done.stderr and done.stdout == ""
+    assert not (tmp_path / "data").exists()  # never locked, so nothing was started

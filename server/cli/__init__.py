@@ -123,35 +123,56 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         bench.add_parser(bench_sub)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``burrforce`` parser; with ``command`` (one of :data:`COMMANDS`), that command's
+    alone: its modules only are imported (``serve`` starts its hot loops ~0.7 s sooner
+    without the other commands' numba and bone imports), and its help and errors read the
+    same."""
     parser = argparse.ArgumentParser(
         prog="burrforce",
         description="Haptic force server for virtual-reality bone burring.",
     )
     parser.add_argument("--version", action="version", version=f"burrforce {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    # Imported here, not at the top: main configures numba's cache before any of them loads it.
-    from . import bone as cli_bone
-    from . import calibrate as cli_calibrate
-    from . import client_demo as cli_client
-    from . import compile as cli_compile
-    from . import device as cli_device
-    from . import replay as cli_replay
-    from . import report as cli_report
-    from . import serve as cli_serve
-
-    for add_parser in (_add_experiment, cli_calibrate.add_parser, cli_bone.add_parser,
-                       cli_serve.add_parser, cli_compile.add_parser, cli_client.add_parser,
-                       cli_device.add_parser, _add_bench, cli_replay.add_parser,
-                       cli_report.add_parser):  # the order COMMAND lists them
-        add_parser(sub)
+    for name in COMMANDS if command is None else (command,):
+        _command_parser(name)(sub)
     return parser
+
+
+#: The commands, in the order COMMAND lists them.
+COMMANDS = ("experiment", "calibrate", "bone", "serve", "compile", "client", "device", "bench",
+            "replay", "report")
+
+
+def _command_parser(name: str):
+    """The function adding command ``name``'s parser. Its module is imported here, not at the
+    top: ``main`` configures numba's cache before any of them loads it."""
+    if name == "experiment":
+        return _add_experiment
+    if name == "bench":
+        return _add_bench
+    from importlib import import_module
+
+    module = {"client": "client_demo"}.get(name, name)
+    return import_module(f".{module}", __name__).add_parser
+
+
+def _command_named(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names first, if it is one (else the whole parser: it lists them,
+    or says what is wrong)."""
+    for arg in argv:
+        if not arg.startswith("-"):
+            return arg if arg in COMMANDS else None
+        if arg != "--":
+            return None  # an option before the command: --help, --version
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     # Before any command imports numba: every process of this one loads the same cache.
     compile_cache.configure()
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(_command_named(argv)).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # e.g. `burrforce experiment --json | head`: not an error

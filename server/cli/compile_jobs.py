@@ -79,17 +79,19 @@ def _packet_path() -> None:
 
 
 def _sessions() -> None:
-    """A hot loop's session (decode, tag, tick, encode, every path of a packet, on a bone
-    in shared memory) and the control plane's reads of that bone (status, snapshots for
-    exports and the journal)."""
+    """A hot loop's session on a bone in shared memory: every path of a packet but the tick
+    (decode, tag, the stages around the tick, encode), which :data:`TICK_ROUND` compiles in
+    another process meanwhile (the model is off, so no packet ticks); and the control plane's
+    reads of that bone (status, snapshots for exports and the journal)."""
     from ..bone.shared import SharedBone
     from ..hotloop.dispatch import Dispatcher
+    from ..hotloop.session_config import SessionConfig
     from ..hotloop.spec import SessionSpec, build_session
 
     with _shared_workpiece() as ref:
         dispatcher = Dispatcher()
-        dispatcher.add(build_session(SessionSpec(bone=ref)))
-        dispatcher.warm_up()
+        dispatcher.add(build_session(SessionSpec(bone=ref, config=SessionConfig(model=False))))
+        dispatcher.warm_up(ticks=False)
         del dispatcher
         reader = SharedBone(ref)
         reader.snapshot().grid.bone_volume_by_label_mm3()
@@ -178,19 +180,22 @@ TICK_ROUND = "tick, round burr"
 PACKET_PATH = "packets and haptics"
 SESSIONS = "sessions"
 RECORDINGS = "recordings and reports"
+PHANTOMS = "phantoms"
 
 #: In the order a server needs them.
 JOBS: tuple[Job, ...] = (
     Job(TICK_ROUND, _tick_round, 109),
     Job(PACKET_PATH, _packet_path, 35),
-    Job(SESSIONS, _sessions, 17, after=(TICK_ROUND, PACKET_PATH)),
+    Job(SESSIONS, _sessions, 17, after=(PACKET_PATH,)),
     Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
-    Job("phantoms", _phantoms, 7),
+    Job(PHANTOMS, _phantoms, 7),
     Job("surface meshes", _meshes, 1),
     Job("bone files", _bone_files, 9),
     Job("cutting model", _model, 24),
     Job("device loop", _device_loop, 55),
     Job(RECORDINGS, _recordings, 156),
 )
-#: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr.
-FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS)
+#: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr, and
+#: the built-in phantoms (the default bone is one). The round tick takes longest; on two
+#: cores the other three follow one another in a second process meanwhile.
+FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS, PHANTOMS)

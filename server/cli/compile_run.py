@@ -232,6 +232,7 @@ def cached_kernels() -> list[tuple[str, bool]]:
     into them, and written to the cache when they are compiled, so "in the cache" is its
     index file being there, not its having run in this process (a caller loaded from the
     cache does not load its callees)."""
+    from numba.core.caching import NullCache
     from numba.core.registry import CPUDispatcher
 
     found = {}
@@ -240,6 +241,7 @@ def cached_kernels() -> list[tuple[str, bool]]:
             continue
         for name, value in list(vars(module).items()):
             if isinstance(value, CPUDispatcher) and value._cache is not None \
+                    and not isinstance(value._cache, NullCache) \
                     and value.py_func.__module__ == module_name:
                 index = getattr(getattr(value._cache, "_cache_file", None), "_index_path", "")
                 found[f"{module_name.removeprefix('burrforce.')}.{name}"] = \

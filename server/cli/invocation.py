@@ -11,6 +11,7 @@ import os
 import shlex
 import shutil
 import sys
+import time
 from pathlib import Path
 
 SCRIPT = "burrforce"
@@ -38,3 +39,15 @@ def _same_file(a: Path, b: Path) -> bool:
         return a.samefile(b)
     except OSError:
         return False
+
+
+def process_age_s() -> float:
+    """Seconds since this process started (from ``/proc/self/stat`` on Linux, so the
+    interpreter's start-up and imports count; 0 where it cannot tell)."""
+    try:
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        started_s = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22: start time, ticks
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - started_s)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0

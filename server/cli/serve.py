@@ -14,8 +14,6 @@ import functools
 import os
 import secrets
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -35,10 +33,11 @@ from ..api.config import (
 from ..api.data_lock import DataDirLock
 from ..argtypes import float_in, int_at_least, int_in
 from ..haptics.profiles import PROFILES
-from .client_demo import EXIT_GAVE_WAY
 from .device import add_loop_options, loop_config
 from .first_start import compile_first_start, load_bone_kernels, start_filler, stop_filler
-from .invocation import burrforce_command
+from .invocation import process_age_s
+from .serve_banner import pool_line, say_banner
+from .serve_demo import run_demo
 
 STATUS_INTERVAL_S = 2.0
 
@@ -185,6 +184,8 @@ def _say_realtime(say, plane) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    # "ready in" counts from the command's start, its own imports included.
+    t0 = time.monotonic() - process_age_s()
     flags = {"host": args.host, "http_port": args.http_port, "udp_port": args.udp_port,
              "workers": args.workers, "wake_ahead_us": args.wake_ahead_us,
              "wake_cpu_share": args.wake_cpu_share, "realtime": args.realtime,
@@ -207,6 +208,7 @@ def main(args: argparse.Namespace) -> int:
     key_hex = None
     if not config.no_auth:
         key_hex = parse_key(config.key).hex() if config.key else None
+    _check_bone(config.bone, args.kind, config.voxel_mm)
     # Before anything in the data directory is read (the token, the journal): a second
     # server there would resume the first one's sessions.
     data_lock = DataDirLock(Path(config.data_dir))
@@ -214,26 +216,32 @@ def main(args: argparse.Namespace) -> int:
     # The hot loops' interpreters start now and import beside this one, which imports the web
     # stack and reads the token and the journal meanwhile: on two cores the two start-ups
     # overlap instead of following each other.
-    from ..api.workers import spawn_hot_loops
+    from ..hotloop.pool import spawn_pool  # light: the loops start before numba loads here
 
-    spawned = spawn_hot_loops(config)
+    spawned = spawn_pool(config.host, config.udp_port, config.worker_count, wake=config.wake,
+                         realtime=config.realtime)
     try:
+        say = functools.partial(print, flush=True)
+        first_start = not compile_cache.is_complete()
+        if first_start:
+            # The web stack's imports (~1 s) overlap the compile's processes instead of
+            # delaying their start.
+            threading.Thread(target=_import_web_stack, name="burrforce-imports",
+                             daemon=True).start()
+            compile_first_start(say)
+        else:
+            # While the hot loops warm up (other processes), this process loads the kernels
+            # its own bone build needs: a process's first cached kernel costs ~1 s of numba
+            # set-up, which would otherwise follow, not overlap. (On a first start they are
+            # compiled, by the jobs below, not here.)
+            threading.Thread(target=load_bone_kernels, name="burrforce-kernels",
+                             daemon=True).start()
         from ..api.models import Parameters
         from ..api.sources import file_source
         from ..api.stack import ServerStack
 
         token, new_token = resolve_token(config)
         bone = config.bone
-        say = functools.partial(print, flush=True)
-        t0 = time.monotonic()
-        # While the kernels compile (first start) or the hot loops warm up (other processes),
-        # this process loads the kernels its own bone build needs: a process's first cached
-        # kernel costs ~1 s of numba set-up, which would otherwise follow, not overlap.
-        threading.Thread(target=load_bone_kernels, name="burrforce-kernels",
-                         daemon=True).start()
-        first_start = not compile_cache.is_complete()
-        if first_start:
-            compile_first_start(say)
         say(f"loading {bone}...")
         from ..api.journal import discard, discard_session
 
@@ -303,8 +311,8 @@ def main(args: argparse.Namespace) -> int:
             context["conn"] = c
             context["path"] = connection.write(c, args.connection_file)
             data_lock.note(stack.url, f"{udp_host}:{udp_port}")
-            _banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
-                    context["path"], args.haptic_device, _pool_line(plane, session))
+            say_banner(say, time.monotonic() - t0, stack.url, c, token, new_token, config,
+                       context["path"], args.haptic_device, pool_line(plane, session))
             if first_start:
                 context["filler"] = start_filler(say, Path(config.data_dir))
             def report() -> None:
@@ -313,7 +321,7 @@ def main(args: argparse.Namespace) -> int:
             if args.demo:
                 # The status lines from the end of the first groove's table on, beside the
                 # demo's later grooves (which run until the server stops).
-                _run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
+                run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
                           session.id, threading.Thread(target=report, name="burrforce-status",
                                                        daemon=True).start)
             else:
@@ -346,6 +354,29 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_bone(bone: str, kind: str | None, voxel_mm: float | None) -> None:
+    """Refuse at once, before a hot loop or the control plane starts, a phantom that does not
+    exist or a bone file that cannot be read (``SourceError``, a ValueError: the command's
+    error line, in the control plane's words). ``library:``, ``upload:`` and ``snapshot:``
+    sources live in the control plane's folders: it checks them."""
+    from ..api.sources import SourceRoots, file_source, resolve
+
+    if bone.startswith("phantom:"):
+        resolve(bone, SourceRoots(None, Path(), Path()), None, voxel_mm)
+    elif not bone.startswith(("library:", "upload:", "snapshot:")):
+        path = Path(bone).expanduser().resolve()
+        file_source(f"file:{path}", path, kind)
+
+
+def _import_web_stack() -> None:
+    """The control plane's modules (FastAPI, uvicorn, pydantic), imported ahead of their use
+    (best effort: the use imports them again and reports any error)."""
+    try:
+        from ..api import stack  # noqa: F401
+    except Exception:
+        pass
+
+
 def _ignore(signum: int, frame: object) -> None:
     pass
 
@@ -367,185 +398,6 @@ def _resumed_default(say, session, source, frame: str | None, key_hex: str | Non
         differs.append(f"--frame {frame}")
     if differs:
         say(f"  not applied to it: {', '.join(differs)} (add --fresh to start over with them)")
-
-
-def _banner(say, elapsed_s: float, url: str, c: connection.Connection, token: str,
-            new_token: bool, config: ServeConfig, conn_path: Path,
-            haptic_device: str | None = None, pool: str | None = None) -> None:
-    say(f"ready in {elapsed_s:.1f} s")
-    output = f"coupled output (device {config.device})" if config.device else "raw force"
-    bound = config.host if config.host in ("0.0.0.0", "::") else c.host
-    say(f"  UDP   {bound}:{c.udp_port}  session {c.session}, frame {c.frame}, {output}, "
-        + (f"key {c.key_hex}" if c.key_hex else "no key (untagged datagrams)"))
-    if pool:
-        say(f"  {pool}")
-    say(f"  REST  {url}/v1   (OpenAPI docs: {url}/docs)")
-    # The fragment never reaches the server or its logs; the page keeps the token for the
-    # tab and drops it from the address bar. A token not shown now stays out of the link.
-    say(f"  VIEW  {ui_link(url, token if new_token else None)}   (live view in a browser)")
-    if new_token:
-        say(f"  token {token}   (new: shown only now; kept in "
-            f"{Path(config.data_dir).expanduser() / TOKEN_FILE})")
-    elif config.token:
-        say("  token as configured")
-    else:
-        say(f"  token in {Path(config.data_dir).expanduser() / TOKEN_FILE}")
-    say(f"  connection file {conn_path}")
-    if haptic_device:
-        say(f"  DEVICE {haptic_device} streams session {c.session}   (status: GET "
-            f"{url}/v1/sessions/{c.session}/device)")
-    token_hint = ("TOKEN=<the configured token>" if config.token else
-                  f"TOKEN=$(cat {Path(config.data_dir).expanduser() / TOKEN_FILE})")
-    if haptic_device:  # a second stream on the device's session would fight it
-        say(f"try:  {token_hint}")
-    else:
-        say(f"try:  {burrforce_command()} client demo          (cuts a groove and prints the "
-            "forces)")
-        say(f"      {token_hint}")
-    say(f"      curl -H \"Authorization: Bearer $TOKEN\" -X PATCH -H 'Content-Type: "
-        f"application/json' -d '{{\"us_n_mm2\": 1610}}' {url}/v1/sessions/{c.session}/"
-        "parameters")
-    say(f"      curl -H \"Authorization: Bearer $TOKEN\" -o bone.stl "
-        f"{url}/v1/sessions/{c.session}/export/mesh")
-    say("Ctrl-C stops the server.")
-
-
-def _pool_line(plane, session) -> str | None:
-    """With several workers: their ports, and which one the default session is on."""
-    workers = plane.workers
-    if len(workers) < 2:
-        return None
-    ports = ", ".join(str(h.address[1]) if h.address else "?" for h in workers)
-    return (f"POOL  {len(workers)} hot-loop workers on UDP ports {ports}; session "
-            f"{session.id} is on worker {session.worker} (each session's port: GET "
-            "/v1/sessions/ID → udp)")
-
-
-def demo_start_mm(bone_info: dict | None, length_mm: float = 10.0) -> tuple[float, float]:
-    """Where the demo's groove starts (x, y, server frame, mm): centred on the bone's
-    footprint, so it finds bone whichever phantom or file is loaded."""
-    if not bone_info:
-        return -5.0, 0.0
-    import numpy as np
-
-    shape = np.asarray(bone_info["shape"], dtype=np.float64)
-    spacing = np.asarray(bone_info["spacing_mm"], dtype=np.float64)
-    rot = np.asarray(bone_info["direction"], dtype=np.float64).reshape(3, 3)
-    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    world = np.asarray(bone_info["origin_mm"]) + (corners * (shape - 1) * spacing) @ rot.T
-    centre = (world.min(axis=0) + world.max(axis=0)) / 2
-    return round(float(centre[0]) - length_mm / 2, 2), round(float(centre[1]), 2)
-
-
-def ui_link(url: str, token: str | None) -> str:
-    """The live view's address, with the token in the fragment when it may be shown."""
-    return f"{url}/ui/" + (f"#token={token}" if token else "")
-
-
-#: After its first groove, --demo cuts another beside it this often (s), so the live view
-#: has a groove being cut whenever someone opens it.
-DEMO_EVERY_S = 6.0
-#: Lanes of the later grooves, mm from the first (y); the bone is reset after the last.
-DEMO_LANES_MM = (3.0, -3.0, 6.0, -6.0)
-
-
-def _run_demo(say, conn_path: Path, done: threading.Event, bone_info: dict | None,
-              url: str, plane, session_id: int, after_first=lambda: None) -> None:
-    """The demo's grooves on ``session_id``: one at once, then one every ``DEMO_EVERY_S``.
-    They give the session's stream way to any other client (a person's `client demo`, an
-    engine) and wait to go on until the session has had no other traffic for a whole
-    interval: a session has one stream, and two clients taking it back and forth both lose
-    their packets. ``after_first`` runs once the first groove's table is printed."""
-    say(f"--demo: running `{burrforce_command()} client demo` against this server...")
-    x_mm, y_mm = demo_start_mm(bone_info)
-    code = _demo_groove(conn_path, done, x_mm, y_mm, quiet=False)
-    after_first()
-    if code is None:
-        return
-    say(f"--demo finished (exit {code}); the server keeps running.")
-    say(f"--demo: watch it in the live view ({url}/ui/, the VIEW link above). A groove "
-        f"beside the last every {DEMO_EVERY_S:.0f} s; the bone is reset after "
-        f"{len(DEMO_LANES_MM) + 1} grooves. They give way to any other client on session "
-        f"{session_id}.")
-    paused = False
-
-    def pause() -> None:
-        nonlocal paused
-        if not paused:
-            say(f"--demo: another client streams on session {session_id}: the demo's grooves "
-                f"wait until it has been quiet for {DEMO_EVERY_S:.0f} s")
-        paused = True
-
-    if code == EXIT_GAVE_WAY:
-        pause()
-    lane = 0
-    seen = _session_traffic(plane, session_id)
-    while not done.wait(DEMO_EVERY_S):
-        now = _session_traffic(plane, session_id)
-        if now is None or seen is None:
-            # The session is (or was) being reloaded, its counters starting again: they say
-            # nothing about this interval.
-            seen = now
-            continue
-        if now != seen:  # someone else's packets while the demo waited
-            seen = now
-            pause()
-            continue
-        if paused:
-            say(f"--demo: session {session_id} has been quiet for {DEMO_EVERY_S:.0f} s: the "
-                "demo's grooves go on")
-            paused = False
-        if lane == len(DEMO_LANES_MM):
-            lane = 0
-            # As POST …/reset does: the bone reloaded from its source, uncarved.
-            job = plane.reset(session_id)
-            if not plane.wait(job, 60.0) or job.state != "done":
-                say(f"--demo: stopped: could not reset the bone ({job.error or 'timed out'})")
-                return
-            code = _demo_groove(conn_path, done, x_mm, y_mm)
-        else:
-            code = _demo_groove(conn_path, done, x_mm, y_mm + DEMO_LANES_MM[lane])
-            lane += 1
-        if code is None:
-            return
-        if code == EXIT_GAVE_WAY:
-            pause()
-        elif code != 0:
-            say(f"--demo: stopped: a groove failed (exit {code})")
-            return
-        seen = _session_traffic(plane, session_id)
-
-
-def _session_traffic(plane, session_id: int) -> int | None:
-    """The datagrams session ``session_id`` has taken so far (POSEs and hellos), or None
-    while it cannot say (its bone being replaced)."""
-    from ..api.errors import ApiError
-
-    try:
-        state = plane.session_state(session_id, max_events=0)
-    except ApiError:  # while the session reloads: ask again next time
-        return None
-    return int(state["accepted"]) + int(state["hellos"])
-
-
-def _demo_groove(conn_path: Path, done: threading.Event, x_mm: float, y_mm: float,
-                 quiet: bool = True) -> int | None:
-    """One `burrforce client demo` groove; its exit status, or None when the server stops."""
-    env = dict(os.environ, BURRFORCE_CONNECTION=str(conn_path))
-    out = subprocess.DEVNULL if quiet else None
-    proc = subprocess.Popen([sys.executable, "-m", "burrforce.server.cli", "client", "demo",
-                             "--x-mm", str(x_mm), "--y-mm", str(y_mm), "--give-way"],
-                            env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
-    while proc.poll() is None:
-        if done.wait(0.1):
-            proc.terminate()
-            proc.wait()
-            return None
-    # A signal to the whole process group (Ctrl-C in a terminal, `timeout`) ends the groove's
-    # client before this process has set ``done``: a groove ended by the stop is no failure.
-    if proc.returncode != 0 and done.wait(2.0):
-        return None
-    return proc.returncode
 
 
 def _start_device(say, plane, session, args: argparse.Namespace) -> None:

@@ -8,11 +8,25 @@ runs), ``commands`` (the command table), ``child`` (the loop process's main), ``
 (``HotLoopProcess``, the parent's side) and ``pool`` (many workers).
 """
 
-from .dispatch import Dispatcher
-from .handle import HotLoopProcess
-from .session import Session
-from .session_config import SessionConfig
-from .spec import DEFAULT_BONE, HotLoopConfig, SessionSpec, build_session
+from importlib import import_module
 
-__all__ = ["DEFAULT_BONE", "Dispatcher", "HotLoopConfig", "HotLoopProcess", "Session",
-           "SessionConfig", "SessionSpec", "build_session"]
+#: What the package exports, and the room each comes from: imported on first use (PEP 562),
+#: so a module that needs only a light room (``wake``, ``spec``'s names) does not import the
+#: whole loop, numba and the bone with it (``burrforce serve`` spawns its loops sooner).
+_EXPORTS = {"Dispatcher": "dispatch", "HotLoopProcess": "handle", "Session": "session",
+            "SessionConfig": "session_config", "DEFAULT_BONE": "spec",
+            "HotLoopConfig": "loop_config", "SessionSpec": "spec", "build_session": "spec"}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS})

@@ -2,10 +2,10 @@
 
 FD is one end of a socket pair the parent (``handle.HotLoopProcess``) holds the other end of;
 BEAT, a datagram socket the loop's heartbeat goes out on. :func:`child_main` reads the config
-(``spec.HotLoopConfig``; first ``spec.STANDBY`` for a spare, which warms up and waits),
-builds and warms the sessions, opens the port, reports ready, then runs three threads: the
-packets (``loop.serve``, this one), the commands (``commands.serve_commands``) and the
-heartbeat. Kernels are compiled (or loaded from numba's cache) and every path of a tick run
+(``loop_config.HotLoopConfig``; first ``loop_config.STANDBY`` for a spare, which warms up
+and waits), builds and warms the sessions, opens the port, reports ready, then runs three
+threads: the packets (``loop.serve``, this one), the commands (``commands.serve_commands``)
+and the heartbeat. Kernels are compiled (or loaded from numba's cache) and every path of a tick run
 once before the port opens, so the first packet is as fast as the thousandth.
 """
 
@@ -24,7 +24,8 @@ from ..realtime import HOT_LOOP_PRIORITY, enter_realtime, leave_realtime
 from .commands import CommandContext, serve_commands
 from .dispatch import Dispatcher
 from .loop import LOOP_COUNTERS, open_socket, serve
-from .spec import STANDBY, HotLoopConfig, SessionSpec, bone_info, build_session
+from .loop_config import STANDBY, HotLoopConfig
+from .spec import SessionSpec, bone_info, build_session
 from .wake import WakeConfig
 
 #: The heartbeat thread takes the loop's lock and beats this often

@@ -89,12 +89,15 @@ class Dispatcher:
         self.sessions[session.id] = session
         self.restoring.discard(session.id)
 
-    def warm_up(self) -> None:
+    def warm_up(self, ticks: bool = True) -> None:
         """Run a hello, a commit, a tick and an unusable pose per session through decode,
         tag, tick and encode (a pose far outside the bone: nothing is carved), so no first
         packet pays for compiling or importing (the general decoder's path too: the hello is
         sent in a non-canonical form); then forget them and start counting from zero (the stream
-        the warm-up used is ended; ``next_stream`` is as it was)."""
+        the warm-up used is ended; ``next_stream`` is as it was).
+
+        ``ticks`` False: not the sessions' bone ticks (``BoneEngine.warm_up``), for a compile
+        job that leaves them to another process (its sessions have the model off)."""
         wire.warm_up()
         # Every burr's tick, the other shapes' too, so that a tool change mid-stream need
         # not load kernels — once ``burrforce compile`` has filled the cache. Until then
@@ -103,7 +106,8 @@ class Dispatcher:
         # (``commands``), off the packet path.
         every_burr = compile_cache.is_complete()
         for session in self.sessions.values():
-            session.engine.warm_up(every_burr)
+            if ticks:
+                session.engine.warm_up(every_burr)
             first = session.next_stream
             far = session.transform.point_out((-1e5, -1e5, -1e5))
             pose = Pose(session.id, 0, 1, far, (0.0, 0.0, 0.0, 1.0),

@@ -2,8 +2,8 @@
 
 Measured (design.md): a CPU-busy uvicorn in the loop's interpreter pushes its p99 round trip
 from tens of µs to ~10 ms, so the loop gets a process of its own (``child``). The parent talks
-to it over a pipe: the config first (``spec.HotLoopConfig``, or ``spec.STANDBY`` for a warm
-spare), then commands (``commands.COMMANDS``), each answered ``("ok", result)`` or
+to it over a pipe: the config first (``loop_config.HotLoopConfig``, or
+``loop_config.STANDBY`` for a warm spare), then commands (``commands.COMMANDS``), each answered ``("ok", result)`` or
 ``("error", (kind, message))`` (``errors``); a second socket pair carries the child's
 heartbeat. :class:`HotLoopProcess` is thread-safe and raises ``errors.CommandError``.
 """
@@ -20,7 +20,7 @@ import time
 from multiprocessing.connection import Connection
 
 from .errors import CommandError
-from .spec import STANDBY, HotLoopConfig
+from .loop_config import STANDBY, HotLoopConfig
 
 #: First start with a cold numba cache compiles every kernel: minutes on a slow machine.
 START_TIMEOUT_S = 600.0

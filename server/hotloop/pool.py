@@ -15,7 +15,7 @@ import threading
 from pathlib import Path
 
 from .handle import START_TIMEOUT_S, HotLoopProcess
-from .spec import HotLoopConfig
+from .loop_config import HotLoopConfig
 from .wake import DEFAULT_WAKE, WakeConfig
 
 

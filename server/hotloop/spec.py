@@ -18,14 +18,10 @@ from ..model.params import CuttingParams
 from .session import Session
 from .session_config import SessionConfig
 from .telemetry import TelemetrySlot
-from .wake import DEFAULT_WAKE, WakeConfig
 
 PHANTOM_PREFIX = "phantom:"
 #: The bone ``burrforce serve`` loads when none is named.
 DEFAULT_BONE = "phantom:temporal"
-#: The first message to a spare (``HotLoopProcess.spawn_spare``) instead of a
-#: ``HotLoopConfig``: warm up, then wait for the config.
-STANDBY = "standby"
 
 
 @dataclass(frozen=True)
@@ -103,24 +99,3 @@ def build_session(spec: SessionSpec) -> Session:
 def bone_info(session: Session) -> dict:
     """What a client may want to know of a session's bone: its voxel size, mm."""
     return {"voxel_mm": float(min(session.engine.grid.spacing_mm))}
-
-
-@dataclass(frozen=True)
-class HotLoopConfig:
-    """Where the hot loop listens, the sessions it starts with, whether it wakes ahead of
-    its streams' packets (``hotloop.wake``), and whether its loop thread asks for the
-    real-time scheduler (``server.realtime``; it then blocks for each datagram instead of
-    waking ahead).
-
-    ``restoring``: the ids of sessions the control plane is about to add back after a
-    restart (``api.supervisor``). Their datagrams are held, unanswered, until each is back
-    (then its client hears WRONG_STREAM once and says hello) or the command ``restored``
-    says the restore is over; never UNKNOWN_SESSION, which a client takes for a session that
-    is gone."""
-
-    host: str = "127.0.0.1"
-    udp_port: int = 0
-    sessions: tuple[SessionSpec, ...] = ()
-    wake: WakeConfig = DEFAULT_WAKE
-    realtime: bool = False
-    restoring: tuple[int, ...] = ()
