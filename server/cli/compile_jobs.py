@@ -24,12 +24,14 @@ class Job:
     """One group of kernels: ``run`` compiles (or loads) them; ``kernels`` is about how many
     numba compiles on an empty cache (``numba:compile`` events, nested ones included: the
     progress bar's scale; ``tests/test_compile_cache.py`` checks it); ``after``: jobs whose
-    kernels this one calls."""
+    kernels this one calls; ``longest``: the job a first start waits for, the others fitting
+    beside it (``compile_run`` runs them at a lower priority)."""
 
     name: str
     run: Callable[[], None]
     kernels: int
     after: tuple[str, ...] = ()
+    longest: bool = False
 
 
 @contextmanager
@@ -184,9 +186,9 @@ PHANTOMS = "phantoms"
 
 #: In the order a server needs them.
 JOBS: tuple[Job, ...] = (
-    Job(TICK_ROUND, _tick_round, 109),
+    Job(TICK_ROUND, _tick_round, 109, longest=True),
     Job(PACKET_PATH, _packet_path, 35),
-    Job(SESSIONS, _sessions, 17, after=(PACKET_PATH,)),
+    Job(SESSIONS, _sessions, 36, after=(PACKET_PATH,)),
     Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
     Job(PHANTOMS, _phantoms, 7),
     Job("surface meshes", _meshes, 1),

@@ -219,10 +219,28 @@ def _init_process(events, nice: int) -> None:
     event.register("numba:compile", Listener())
 
 
+#: How much lower the priority of a process running any job but the longest: when more
+#: processes than cores want to run (a first ``serve``'s own imports and hot loop beside
+#: two compile processes), the longest job, which the start waits for, keeps its core and
+#: the others, which have time to spare, yield. Once lowered it stays lowered (only root may
+#: raise it again): the longest job is submitted first, so it never lands on such a process
+#: while the others still run.
+SHORTER_JOBS_NICE = 5
+_lowered = False
+
+
 def _run_job(name: str) -> JobResult:
+    global _lowered
+    job = BY_NAME[name]
+    if not job.longest and not _lowered:
+        _lowered = True
+        try:
+            os.nice(SHORTER_JOBS_NICE)
+        except OSError:
+            pass
     before = _compiled
     t0 = time.perf_counter()
-    BY_NAME[name].run()
+    job.run()
     return JobResult(name, time.perf_counter() - t0, _compiled - before, cached_kernels())
 
 
