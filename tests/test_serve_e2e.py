@@ -176,8 +176,10 @@ def test_a_bone_the_control_plane_refuses_is_an_error_not_a_traceback(tmp_path):
     ("phantom:nope", "unknown phantom 'nope'"),
     ("missing.nrrd", "missing.nrrd"),
 ])
-def test_a_bad_bone_is_refused_before_anything_starts(tmp_path, bone, says):
-    """Before the data directory is locked or a hot loop spawned: nothing to stop, at once."""
+def test_a_bad_bone_is_refused_before_the_data_directory_is_read(tmp_path, bone, says):
+    """At once, before the token or the journal is read and the control plane starts (the
+    hot loops spawned ahead are stopped; a second server on the same data directory hears of
+    the first one instead: test_data_dir_lock)."""
     done = subprocess.run(
         [sys.executable, "-m", "burrforce.server.cli", "serve", "--bone", bone,
          "--http-port", "0", "--udp-port", "0", "--data-dir", str(tmp_path / "data"),
@@ -186,4 +188,4 @@ def test_a_bad_bone_is_refused_before_anything_starts(tmp_path, bone, says):
     assert done.returncode == 2, done.stdout + done.stderr
     assert done.stderr.startswith("burrforce serve: error: ") and says in done.stderr
     assert "Traceback" not in done.stderr and done.stdout == ""
-    assert not (tmp_path / "data").exists()  # never locked, so nothing was started
+    assert [p.name for p in (tmp_path / "data").iterdir()] == ["serve.lock"]  # no token, journal

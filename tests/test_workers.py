@@ -237,6 +237,32 @@ def test_a_pool_spawned_ahead_starts_those_processes_and_refuses_a_wrong_count()
             hot.stop()
 
 
+def test_a_pool_spawned_warm_opens_its_port_before_it_is_started():
+    """With every kernel in the cache, ``serve`` sends the config as it spawns: the loop
+    loads its kernels and binds its port while the parent still imports; starting it then
+    only collects its "ready"."""
+    from support.podman import free_port
+
+    port = free_port()
+    spawned = spawn_pool("127.0.0.1", port, 1, warm=True)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                try:
+                    probe.bind(("127.0.0.1", port))
+                except OSError:
+                    break  # the loop holds it: it started without start_pool
+            assert time.monotonic() < deadline, "the warm loop never opened its port"
+            time.sleep(0.05)
+        pool = start_pool("127.0.0.1", port, 1, spawned=spawned)
+        assert pool[0].address == ("127.0.0.1", port)
+        assert pool[0].call("stats")["counters"]["received"] == 0
+    finally:
+        for hot in spawned:
+            hot.stop()
+
+
 @pytest.mark.parametrize("text,cap", [("max 100000\n", None), ("200000 100000\n", 2),
                                       ("50000 100000\n", 1), ("150000 100000\n", 2),
                                       ("garbage\n", None)])

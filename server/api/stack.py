@@ -58,7 +58,7 @@ class ServerStack:
     def start_backend(self, spawned: list[HotLoopProcess] | None = None) -> None:
         """The hot loops, the control plane, the statistics poller, the supervisor and the
         journal, after resuming the journaled sessions (no HTTP yet). ``spawned``: the hot
-        loops' processes ``api.workers.spawn_hot_loops`` made ahead for this config.
+        loops' processes ``hotloop.pool.spawn_pool`` made ahead for this config.
 
         Raises:
             RuntimeError: a worker's UDP port is taken, or a worker failed to start.

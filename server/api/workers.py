@@ -19,7 +19,7 @@ from ..bone.shared import SharedBoneRef, end_interrupted_tick
 from ..hotloop import HotLoopConfig, HotLoopProcess, SessionSpec
 from ..hotloop.errors import CommandError
 from ..hotloop.handle import CALL_TIMEOUT_S, START_TIMEOUT_S
-from ..hotloop.pool import spawn_pool, start_pool
+from ..hotloop.pool import start_pool
 from .config import ServeConfig
 from .errors import ApiError, Unavailable, from_command
 from .sessions import ManagedSession, SessionTable, Settings
@@ -214,17 +214,10 @@ def start_hot_loop(config: ServeConfig) -> HotLoopProcess:
     return hot
 
 
-def spawn_hot_loops(config: ServeConfig) -> list[HotLoopProcess]:
-    """The processes of :func:`start_hot_loops`, spawned ahead (``hotloop.pool.spawn_pool``):
-    their interpreters start while the caller imports and reads the rest."""
-    return spawn_pool(config.host, config.udp_port, config.worker_count, wake=config.wake,
-                      realtime=config.realtime)
-
-
 def start_hot_loops(config: ServeConfig,
                     spawned: list[HotLoopProcess] | None = None) -> list[HotLoopProcess]:
     """``config.worker_count`` hot loops with no sessions yet, worker i on ``udp_port + i``
-    (``hotloop.pool.start_pool``); ``spawned``: what :func:`spawn_hot_loops` made for the
-    same config."""
+    (``hotloop.pool.start_pool``); ``spawned``: what ``hotloop.pool.spawn_pool`` made for
+    the same config."""
     return start_pool(config.host, config.udp_port, config.worker_count, wake=config.wake,
                       realtime=config.realtime, spawned=spawned)

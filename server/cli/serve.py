@@ -208,21 +208,31 @@ def main(args: argparse.Namespace) -> int:
     key_hex = None
     if not config.no_auth:
         key_hex = parse_key(config.key).hex() if config.key else None
-    _check_bone(config.bone, args.kind, config.voxel_mm)
-    # Before anything in the data directory is read (the token, the journal): a second
-    # server there would resume the first one's sessions.
-    data_lock = DataDirLock(Path(config.data_dir))
-    data_lock.acquire()
-    # The hot loops' interpreters start now and import beside this one, which imports the web
-    # stack and reads the token and the journal meanwhile: on two cores the two start-ups
-    # overlap instead of following each other.
-    from ..hotloop.pool import spawn_pool  # light: the loops start before numba loads here
+    first_start = not compile_cache.is_complete()
+    # The hot loops' interpreters start first and import beside this one, which imports
+    # numba, the bone and the web stack and reads the token and the journal meanwhile: on two
+    # cores the start-ups overlap. With every kernel in the cache the loops also load them
+    # and open their ports meanwhile (on a first start they wait for the compile below).
+    from ..hotloop.pool import spawn_pool  # light: nothing of numba, the bone or the web
 
     spawned = spawn_pool(config.host, config.udp_port, config.worker_count, wake=config.wake,
-                         realtime=config.realtime)
+                         realtime=config.realtime, warm=not first_start)
+    try:
+        # Before anything in the data directory is read (the token, the journal): a second
+        # server there would resume the first one's sessions.
+        data_lock = DataDirLock(Path(config.data_dir))
+        data_lock.acquire()
+        try:
+            _check_bone(config.bone, args.kind, config.voxel_mm)
+        except BaseException:
+            data_lock.release()
+            raise
+    except BaseException:
+        for hot in spawned:
+            hot.kill()
+        raise
     try:
         say = functools.partial(print, flush=True)
-        first_start = not compile_cache.is_complete()
         if first_start:
             # The web stack's imports (~1 s) overlap the compile's processes instead of
             # delaying their start.

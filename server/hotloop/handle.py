@@ -3,9 +3,10 @@
 Measured (design.md): a CPU-busy uvicorn in the loop's interpreter pushes its p99 round trip
 from tens of µs to ~10 ms, so the loop gets a process of its own (``child``). The parent talks
 to it over a pipe: the config first (``loop_config.HotLoopConfig``, or
-``loop_config.STANDBY`` for a warm spare), then commands (``commands.COMMANDS``), each answered ``("ok", result)`` or
-``("error", (kind, message))`` (``errors``); a second socket pair carries the child's
-heartbeat. :class:`HotLoopProcess` is thread-safe and raises ``errors.CommandError``.
+``loop_config.STANDBY`` for a warm spare), then commands (``commands.COMMANDS``), each
+answered ``("ok", result)`` or ``("error", (kind, message))`` (``errors``); a second socket
+pair carries the child's heartbeat. :class:`HotLoopProcess` is thread-safe and raises
+``errors.CommandError``.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ class HotLoopProcess:
         self.wedged: str | None = None
         #: Held by a command's round trip; reentrant: a call that times out kills the loop.
         self._lock = threading.RLock()
+        self._config_sent = False
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> tuple[str, int]:
         """Start the process; returns (host, port) once the port is open.
@@ -79,7 +81,8 @@ class HotLoopProcess:
         proc, conn = self._proc, self._conn
         assert proc is not None and conn is not None
         try:
-            conn.send(self.config)
+            if not self._config_sent:
+                self.send_config()
             if not conn.poll(timeout_s):
                 raise RuntimeError(f"the hot loop did not start within {timeout_s:g} s")
             message = conn.recv()
@@ -142,6 +145,14 @@ class HotLoopProcess:
             beat_theirs.close()
         beat_ours.setblocking(False)
         self._proc, self._conn, self._beat = proc, Connection(ours.detach()), beat_ours
+
+    def send_config(self) -> None:
+        """Send the config to the spawned process, which then warms up, opens its port and
+        reports ready by itself; :meth:`start` waits for that (``pool.spawn_pool`` sends it
+        at once, so the warm-up overlaps the parent's own start-up)."""
+        assert self._conn is not None, "spawn first"
+        self._conn.send(self.config)
+        self._config_sent = True
 
     def call(self, command: str, timeout_s: float = CALL_TIMEOUT_S, **kwargs: object) -> object:
         """Run a command in the loop process and return its result.

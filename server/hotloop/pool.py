@@ -70,11 +70,14 @@ def check_ports_free(host: str, udp_port: int, workers: int) -> None:
 
 
 def spawn_pool(host: str, udp_port: int, workers: int, wake: WakeConfig = DEFAULT_WAKE,
-               realtime: bool = False) -> list[HotLoopProcess]:
+               realtime: bool = False, warm: bool = False) -> list[HotLoopProcess]:
     """The pool's processes spawned, their ports checked, not yet started: each interpreter
     imports while the caller goes on (``serve`` imports its web stack meanwhile: on two cores
     the two start-ups overlap instead of following each other). :func:`start_pool` starts
     them; a caller that gives up first kills them (or exits: they end with their pipe).
+    ``warm``: also send each its config, so that it warms up and opens its port meanwhile
+    too (only where the kernels are all in the cache: else each would compile them, beside
+    the compile a first start runs).
 
     Raises:
         ValueError: ``workers`` < 1.
@@ -88,6 +91,10 @@ def spawn_pool(host: str, udp_port: int, workers: int, wake: WakeConfig = DEFAUL
     try:
         for hot in pool:
             hot.spawn()
+            if warm:
+                # Each loop loads its kernels and opens its port while the caller is still
+                # importing (~0.5 s of a warm start); start_pool collects their "ready".
+                hot.send_config()
     except BaseException:
         for hot in pool:
             hot.kill()
