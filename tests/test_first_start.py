@@ -126,8 +126,10 @@ def empty_cache(tmp_path, monkeypatch):
 
 def test_compiling_shows_each_job_and_loading_shows_nothing(empty_cache, capsys):
     lines: list[str] = []
-    results = run_jobs([SHORT], 1, lines.append, bar=False, header="first use")
-    assert [r.name for r in results] == [SHORT]
+    finished: list[str] = []
+    results = run_jobs([SHORT], 1, lines.append, bar=False, header="first use",
+                       on_finished=finished.append)
+    assert [r.name for r in results] == [SHORT] and finished == [SHORT]
     assert results[0].compiled > 5
     assert len(lines) == 2 and lines[0] == "first use" and lines[1].startswith(
         f"  compiled {SHORT}: {results[0].compiled} kernels in ")

@@ -48,13 +48,15 @@ def default_processes() -> int:
 
 def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
              bar: bool | None = None, nice: int = 0, stream: TextIO | None = None,
-             header: str = "") -> list[JobResult]:
+             header: str = "",
+             on_finished: Callable[[str], None] | None = None) -> list[JobResult]:
     """Run the jobs ``names`` (and nothing else: a job named in another's ``after`` but not
     in ``names`` is taken as done) in ``processes`` processes; their results in the order
     they finished. ``say`` gets one line per job when there is no bar; ``bar`` None: a bar
     if ``stream`` (default: standard output) is a terminal with a width, drawn there.
     ``nice``: added to the processes' niceness. ``header``: said before the first kernel
-    compiles (never, when every kernel loads from the cache).
+    compiles (never, when every kernel loads from the cache). ``on_finished``: called with
+    each job's name as it finishes (in this thread).
 
     Raises what a job raised (the others are stopped first)."""
     unknown = [n for n in names if n not in BY_NAME]
@@ -89,6 +91,8 @@ def run_jobs(names: Sequence[str], processes: int, say: Callable[[str], None],
                     done.add(job.name)
                     results.append(result)
                     progress.finished(result)
+                    if on_finished is not None:
+                        on_finished(job.name)
         except BaseException:
             for future in running:
                 future.cancel()

@@ -8,22 +8,29 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
 from .. import compile_cache
 
 
-def compile_first_start(say) -> None:
+def compile_first_start(say, on_packet_path: Callable[[], None] | None = None) -> None:
     """Compile what a hot loop needs to serve a round burr (``compile_jobs.FIRST_START``),
     in parallel processes, with a progress bar; the rest follows once serving
     (:func:`start_filler`). Waits instead for a ``burrforce compile`` already filling the
-    cache (another server's, behind its own first start)."""
-    from .compile_jobs import FIRST_START
+    cache (another server's, behind its own first start). ``on_packet_path``: called once
+    the packet path is in the cache, which is all a hot loop without sessions loads
+    (``serve`` starts its loops then, while the tick still compiles)."""
+    from .compile_jobs import FIRST_START, PACKET_PATH
+
+    def finished(name: str) -> None:
+        if name == PACKET_PATH and on_packet_path is not None:
+            on_packet_path()
 
     _compile(FIRST_START, say, "first start on this machine: compiling the kernels a session "
                                "needs (once: they are cached; the rest compiles in the "
-                               "background once serving)")
+                               "background once serving)", on_finished=finished)
 
 
 def compile_before_use(jobs: tuple[str, ...], what: str, stream: TextIO) -> None:
@@ -43,7 +50,8 @@ def compile_before_use(jobs: tuple[str, ...], what: str, stream: TextIO) -> None
              stream)
 
 
-def _compile(jobs: tuple[str, ...], say, header: str, stream: TextIO | None = None) -> None:
+def _compile(jobs: tuple[str, ...], say, header: str, stream: TextIO | None = None,
+             on_finished: Callable[[str], None] | None = None) -> None:
     """Run ``jobs`` with the bar, ``header`` said when the first kernel compiles (nothing
     when all load), after any ``burrforce compile`` filling the same cache."""
     from .compile_run import default_processes, run_jobs
@@ -51,7 +59,8 @@ def _compile(jobs: tuple[str, ...], say, header: str, stream: TextIO | None = No
     with compile_cache.filling(on_wait=lambda: say(
             "  waiting for another `burrforce compile` filling the same cache "
             f"({compile_cache.cache_dir()})...")):
-        run_jobs(jobs, default_processes(), say, stream=stream, header=header)
+        run_jobs(jobs, default_processes(), say, stream=stream, header=header,
+                 on_finished=on_finished)
 
 
 def start_filler(say, data_dir: Path) -> subprocess.Popen | None:

@@ -238,7 +238,7 @@ def main(args: argparse.Namespace) -> int:
             # delaying their start.
             threading.Thread(target=_import_web_stack, name="burrforce-imports",
                              daemon=True).start()
-            compile_first_start(say)
+            compile_first_start(say, on_packet_path=functools.partial(_start_loops, spawned))
         else:
             # While the hot loops warm up (other processes), this process loads the kernels
             # its own bone build needs: a process's first cached kernel costs ~1 s of numba
@@ -376,6 +376,17 @@ def _check_bone(bone: str, kind: str | None, voxel_mm: float | None) -> None:
     elif not bone.startswith(("library:", "upload:", "snapshot:")):
         path = Path(bone).expanduser().resolve()
         file_source(f"file:{path}", path, kind)
+
+
+def _start_loops(spawned) -> None:
+    """Send the spawned hot loops their config, once what they load without sessions (the
+    packet path) is compiled: they warm up and open their ports while the tick still
+    compiles. A loop that died meanwhile is reported when it is started."""
+    for hot in spawned:
+        try:
+            hot.send_config()
+        except OSError:
+            pass
 
 
 def _import_web_stack() -> None:
