@@ -186,7 +186,7 @@ TICK_ROUND = "tick, round burr"
 PACKET_PATH = "packets and haptics"
 SESSIONS = "sessions"
 RECORDINGS = "recordings and reports"
-PHANTOMS = "phantoms"
+BUILT_IN_PHANTOMS = "phantoms"
 
 #: In the order a server needs them.
 JOBS: tuple[Job, ...] = (
@@ -194,7 +194,7 @@ JOBS: tuple[Job, ...] = (
     Job(PACKET_PATH, _packet_path, 35),
     Job(SESSIONS, _sessions, 36, after=(PACKET_PATH,)),
     Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
-    Job(PHANTOMS, _phantoms, 7),
+    Job(BUILT_IN_PHANTOMS, _phantoms, 7),
     Job("surface meshes", _meshes, 1),
     Job("bone files", _bone_files, 9),
     Job("cutting model", _model, 24),
@@ -204,4 +204,4 @@ JOBS: tuple[Job, ...] = (
 #: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr, and
 #: the built-in phantoms (the default bone is one). The round tick takes longest; on two
 #: cores the other three follow one another in a second process meanwhile.
-FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS, PHANTOMS)
+FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS, BUILT_IN_PHANTOMS)

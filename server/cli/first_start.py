@@ -15,18 +15,23 @@ from typing import TextIO
 from .. import compile_cache
 
 
-def compile_first_start(say, on_packet_path: Callable[[], None] | None = None) -> None:
+def compile_first_start(say, on_packet_path: Callable[[], None] | None = None,
+                        on_phantoms: Callable[[], None] | None = None) -> None:
     """Compile what a hot loop needs to serve a round burr (``compile_jobs.FIRST_START``),
     in parallel processes, with a progress bar; the rest follows once serving
     (:func:`start_filler`). Waits instead for a ``burrforce compile`` already filling the
-    cache (another server's, behind its own first start). ``on_packet_path``: called once
-    the packet path is in the cache, which is all a hot loop without sessions loads
-    (``serve`` starts its loops then, while the tick still compiles)."""
-    from .compile_jobs import FIRST_START, PACKET_PATH
+    cache (another server's, behind its own first start).
+
+    Called while the tick still compiles: ``on_packet_path`` once the packet path is in the
+    cache, which is all a hot loop without sessions loads (``serve`` starts its loops then);
+    ``on_phantoms`` once the phantoms and the bone's summaries are (``serve`` loads them into
+    its own process then: :func:`load_bone_kernels`)."""
+    from .compile_jobs import BUILT_IN_PHANTOMS, FIRST_START, PACKET_PATH
 
     def finished(name: str) -> None:
-        if name == PACKET_PATH and on_packet_path is not None:
-            on_packet_path()
+        callback = {PACKET_PATH: on_packet_path, BUILT_IN_PHANTOMS: on_phantoms}.get(name)
+        if callback is not None:
+            callback()
 
     _compile(FIRST_START, say, "first start on this machine: compiling the kernels a session "
                                "needs (once: they are cached; the rest compiles in the "

@@ -238,14 +238,10 @@ def main(args: argparse.Namespace) -> int:
             # delaying their start.
             threading.Thread(target=_import_web_stack, name="burrforce-imports",
                              daemon=True).start()
-            compile_first_start(say, on_packet_path=functools.partial(_start_loops, spawned))
+            compile_first_start(say, on_packet_path=functools.partial(_start_loops, spawned),
+                                on_phantoms=_load_bone_kernels_aside)
         else:
-            # While the hot loops warm up (other processes), this process loads the kernels
-            # its own bone build needs: a process's first cached kernel costs ~1 s of numba
-            # set-up, which would otherwise follow, not overlap. (On a first start they are
-            # compiled, by the jobs below, not here.)
-            threading.Thread(target=load_bone_kernels, name="burrforce-kernels",
-                             daemon=True).start()
+            _load_bone_kernels_aside()
         from ..api.models import Parameters
         from ..api.sources import file_source
         from ..api.stack import ServerStack
@@ -376,6 +372,14 @@ def _check_bone(bone: str, kind: str | None, voxel_mm: float | None) -> None:
     elif not bone.startswith(("library:", "upload:", "snapshot:")):
         path = Path(bone).expanduser().resolve()
         file_source(f"file:{path}", path, kind)
+
+
+def _load_bone_kernels_aside() -> None:
+    """While the hot loops warm up (other processes; on a first start, once the compile has
+    put them in the cache), this process loads the kernels its own bone build needs: a
+    process's first cached kernel costs ~1 s of numba set-up, which would otherwise follow,
+    not overlap."""
+    threading.Thread(target=load_bone_kernels, name="burrforce-kernels", daemon=True).start()
 
 
 def _start_loops(spawned) -> None:
