@@ -41,7 +41,7 @@ class StreamResult:
         late_sends: sends more than one period behind schedule (this machine was busy).
         outages: times the server went away mid-stream (:class:`ServerGone`).
         outage_ticks: waypoints sent while it was away (from the tick the outage was noticed
-            up to the first answer after it): their results are None.
+            up to the first answer to one of them): their results are None.
     """
 
     results: list[Result | None]
@@ -72,9 +72,9 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
     The server going away does not end the stream: the outage is counted (``outages``,
     ``outage_ticks``) and reported to ``on_outage(True, index)`` (without it: a warning on
     the logger ``burrforce.client``); sending goes on on schedule, and when the server
-    answers again ``on_outage(False, index)`` is called (or a second warning logged). A
-    restarted server answers WRONG_STREAM, the client says hello and streams on (its first
-    reply STALE, then cutting resumes).
+    answers a waypoint sent since then ``on_outage(False, index)`` is called (or a second
+    warning logged). A restarted server answers WRONG_STREAM, the client says hello and
+    streams on (its first reply STALE, then cutting resumes).
     """
     if not 0.0 < rate_hz <= 100_000.0:
         raise ValueError(f"rate_hz must be in (0, 100000], got {rate_hz}")
@@ -83,6 +83,10 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
     results: list[Result | None] = []
     out = StreamResult(results)
     gone_since: list[int] = []  # [the index the outage was noticed at] while it lasts
+    start_us = 0  # t_client_us of waypoint 0: waypoint k is stamped start_us + k periods
+
+    def stamp_us(k: int) -> int:
+        return start_us + round(k * period * 1e6)
 
     def gone(error: ServerGone) -> None:
         if gone_since:
@@ -117,7 +121,12 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
                 if time.perf_counter() >= until:
                     return
                 continue
-            if gone_since:
+            # Only an answer to a waypoint sent since the outage was noticed says the server
+            # is back. The socket reports a refusal ahead of datagrams that arrived before it:
+            # a reply the old server sent just before it stopped is read after the refusal
+            # (a client behind schedule sends without reading), and the next refusal would
+            # count as a second outage.
+            if gone_since and _answers_us(message) >= stamp_us(gone_since[0]):
                 back()
             if isinstance(message, Notice):
                 out.notices.append(message)
@@ -146,7 +155,7 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
             # Stamped with its scheduled time: a late send must not look like a faster motion.
             try:
                 seq = client.send(w.position, w.orientation, w.rpm, w.spindle_on, None,
-                                  w.flags, start_us + round(k * period * 1e6))
+                                  w.flags, stamp_us(k))
             except ServerGone as error:
                 gone(error)  # the next send goes out: the OS reports each refusal once
                 seq = None
@@ -162,6 +171,11 @@ def stream(client: BurrClient, waypoints: Iterable[Waypoint], rate_hz: float = 1
     finally:
         gc.unfreeze()
     return out
+
+
+def _answers_us(message: Result | Notice) -> int:
+    """The t_client_us ``message`` echoes: the stamp of the pose it answers, µs."""
+    return message.t_client_us if isinstance(message, Notice) else message.reply.t_client_us
 
 
 def line(start: Sequence[float], end: Sequence[float], speed: float, rate_hz: float = 1000.0,
