@@ -107,11 +107,6 @@ SLOW: tuple[str, ...] = (
     "compile_nothing",
     # 100 000 datagrams; the live server's other tests stay.
     "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
-    # A 1 kHz stream through a loop restart, counting exactly one outage: beside the other
-    # fast-tier worker's load the client counted a second one (1 run in 6 with two workers;
-    # likely a port-unreachable error read after the new loop's first reply). Run in one
-    # process with the rest; the restarted loop's stream and replay tests stay fast-tier.
-    "test_hotloop_live.py::test_stream_survives_the_server_stopping_and_starting_mid_trajectory",
     # The schema fuzzers (schemathesis over every route); the module's token test stays.
     "test_api_schema.py::test_no_server_errors",
     "test_api_schema.py::test_answers_match_the_schema",
