@@ -106,7 +106,12 @@ def test_streaming_a_trajectory_at_1khz(server):
                               rpm=60_000))
         out = stream(c, waypoints, rate_hz=1000.0)
     assert len(out.results) == len(waypoints) == 2001
-    assert out.lost <= 2  # loopback loses nothing unless this machine stalls badly
+    # Until the hello's NEW_STREAM comes back every waypoint goes out as a hello, answered by
+    # a notice, not ticked: one round trip's worth of them (6 once, with this machine's cores
+    # held by other work). After it, loopback loses nothing unless this machine stalls badly.
+    first = next(i for i, r in enumerate(out.results) if r is not None)
+    assert first <= 50
+    assert sum(r is None for r in out.results[first:]) <= 2
     cutting = [r for r in out.results[500:] if r is not None]
     assert all(r.reply.status & STATUS_CUTTING for r in cutting)
     # Feed velocity came from the stamped schedule: 3 mm/s along Unity's +z, in metres/s.
