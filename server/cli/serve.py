@@ -328,8 +328,8 @@ def main(args: argparse.Namespace) -> int:
                 # The status lines from the end of the first groove's table on, beside the
                 # demo's later grooves (which run until the server stops).
                 run_demo(say, context["path"], done, session.bone_info, stack.url, plane,
-                          session.id, threading.Thread(target=report, name="burrforce-status",
-                                                       daemon=True).start)
+                         session.id, threading.Thread(target=report, name="burrforce-status",
+                                                      daemon=True).start)
             else:
                 report()
 
@@ -361,10 +361,11 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _check_bone(bone: str, kind: str | None, voxel_mm: float | None) -> None:
-    """Refuse at once, before a hot loop or the control plane starts, a phantom that does not
-    exist or a bone file that cannot be read (``SourceError``, a ValueError: the command's
-    error line, in the control plane's words). ``library:``, ``upload:`` and ``snapshot:``
-    sources live in the control plane's folders: it checks them."""
+    """Refuse at once, before the token or the journal is read and the control plane starts,
+    a phantom that does not exist or a bone file that cannot be read (``SourceError``, a
+    ValueError: the command's error line, in the control plane's words). ``library:``,
+    ``upload:`` and ``snapshot:`` sources live in the control plane's folders: it checks
+    them."""
     from ..api.sources import SourceRoots, file_source, resolve
 
     if bone.startswith("phantom:"):
