@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .. import __version__, compile_cache
@@ -144,7 +144,7 @@ COMMANDS = ("experiment", "calibrate", "bone", "serve", "compile", "client", "de
             "replay", "report")
 
 
-def _command_parser(name: str):
+def _command_parser(name: str) -> Callable[[argparse._SubParsersAction], None]:
     """The function adding command ``name``'s parser. Its module is imported here, not at the
     top: ``main`` configures numba's cache before any of them loads it."""
     if name == "experiment":
