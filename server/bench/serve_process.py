@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,13 +36,23 @@ class ServeProcess:
     def stop(self, timeout_s: float = 30.0) -> tuple[int, str]:
         """SIGTERM, then wait; returns the exit code and what it printed after the banner
         (killed if it does not stop in time)."""
+        # Read through the same text stream the banner was read from: what its readline()
+        # buffered past the banner (a line printed right after it) is there, not in the pipe
+        # (communicate(timeout=...) reads the pipe itself and would lose it).
+        chunks: list[str] = []
+        reader = threading.Thread(target=lambda: chunks.extend(self.proc.stdout),
+                                  name="serve-output", daemon=True)
+        reader.start()
         self.proc.send_signal(signal.SIGTERM)
         try:
-            out, _ = self.proc.communicate(timeout=timeout_s)
+            self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            out, _ = self.proc.communicate()
-        return self.proc.returncode, out
+            self.proc.wait()
+        # A child still holding the pipe (a hot loop outliving a killed serve) must not hang
+        # the caller: what was read by then is returned.
+        reader.join(timeout=timeout_s)
+        return self.proc.returncode, "".join(chunks)
 
 
 def spawn_serve(folder: Path, *args: str, timeout_s: float = 300.0,
