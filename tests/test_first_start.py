@@ -247,6 +247,71 @@ def test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_compile_noth
     assert "compiled []" in done.stdout, done.stdout
 
 
+#: The round tick in a process of its own, on the cache ``NUMBA_CACHE_DIR``: which kernels it
+#: compiled, and a hash of its outputs along a groove into the compile's workpiece.
+_ROUND_TICK = textwrap.dedent("""
+    import hashlib
+    import numpy as np
+    from numba.core import event
+    compiled = []
+    class Count(event.Listener):
+        def on_start(self, e): compiled.append(e.data["dispatcher"].py_func.__qualname__)
+        def on_end(self, e): pass
+    event.register("numba:compile", Count())
+    from burrforce.server.cli.compile_jobs import _shared_workpiece, _tick_round
+    from burrforce.server.hotloop.spec import SessionSpec, build_session
+    _tick_round()
+    print("compiled", sorted(set(compiled)))
+    digest = hashlib.sha256()
+    with _shared_workpiece() as ref:
+        engine = build_session(SessionSpec(bone=ref)).engine
+        top = np.argwhere(engine.grid.density > 128).max(axis=0) * engine.grid.spacing_mm
+        axis = np.array([0.3, 0.0, 0.954]) / np.linalg.norm([0.3, 0.0, 0.954])
+        for t in range(300):  # the burr's centre 0.5 mm above the top face: it cuts
+            centre = np.array([0.5 * top[0] - 1.0 + 0.01 * t, 0.5 * top[1], top[2] + 0.5])
+            engine.step_raw(centre, axis, np.array([1.0, 0.0, 0.0]), 60_000.0)
+            for values in (engine.out, engine.shaft_out, engine.touch):
+                digest.update(values.tobytes())
+        digest.update(engine.grid.swept.tobytes())
+        print("cut", int(engine.grid.swept.astype(np.int64).sum()))
+    print("outputs", digest.hexdigest())
+""")
+
+
+def _round_tick(cache) -> dict[str, str]:
+    done = subprocess.run([sys.executable, "-c", _ROUND_TICK], capture_output=True, text=True,
+                          env={**os.environ, "NUMBA_CACHE_DIR": str(cache)}, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return dict(line.split(" ", 1) for line in done.stdout.splitlines())
+
+
+def test_the_round_ticks_parts_compiled_first_elsewhere_are_loaded_and_change_nothing(
+        tmp_path):
+    """A first start compiles the round tick's last parts in the second process
+    (``bone.tick_parts``): with them in the cache the tick compiles none of them, and its
+    code is the tick's own (a cached kernel keeps the bitcode its caller inlines): the same
+    outputs, to the last bit, as a tick compiled alone."""
+    from burrforce.server.bone.tick_parts import round_tick_parts
+    from burrforce.server.cli.compile_jobs import TICK_ROUND_PARTS
+
+    parts_first = tmp_path / "parts-first"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(parts_first)}
+    script = tmp_path / "parts.py"
+    script.write_text("from burrforce.server.cli.compile_run import run_jobs\n"
+                      "if __name__ == '__main__':\n"
+                      f"    run_jobs([{TICK_ROUND_PARTS!r}], 1, print, bar=False)\n")
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    after_parts = _round_tick(parts_first)
+    alone = _round_tick(tmp_path / "alone")
+    parts = {kernel.py_func.__qualname__ for kernel, _ in round_tick_parts()}
+    assert parts <= set(eval(alone["compiled"]))  # the tick calls every one of them
+    assert not parts & set(eval(after_parts["compiled"])), after_parts["compiled"]
+    assert int(alone["cut"]) > 0
+    assert after_parts["cut"] == alone["cut"] and after_parts["outputs"] == alone["outputs"]
+
+
 def test_a_first_serve_compiles_with_progress_then_the_rest_behind_it(tmp_path):
     """Empty cache and HOME: serve compiles what its session needs (a line per job when not
     on a terminal), gets ready, and fills the rest of the cache in the background, which

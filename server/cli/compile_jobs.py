@@ -62,6 +62,14 @@ def _tick_round() -> None:
     _tick(CuttingParams())
 
 
+def _tick_round_parts() -> None:
+    """Kernels the round burr's tick reaches last, without a bone (``bone.tick_parts``): in
+    a second process, beside :data:`TICK_ROUND`, which then loads them."""
+    from ..bone.tick_parts import compile_round_tick_parts
+
+    compile_round_tick_parts()
+
+
 def _tick_other_burrs() -> None:
     """The bone tick for every other burr (one set of types for all of them)."""
     from ..model.params import CuttingParams
@@ -183,14 +191,17 @@ def _recordings() -> None:
 
 
 TICK_ROUND = "tick, round burr"
+TICK_ROUND_PARTS = "tick, round burr: its last parts"
 PACKET_PATH = "packets and haptics"
 SESSIONS = "sessions"
 RECORDINGS = "recordings and reports"
 BUILT_IN_PHANTOMS = "phantoms"
 
-#: In the order a server needs them.
+#: In the order a server needs them (a free process takes the first job ready). The round
+#: tick's last parts come second, to be cached before the tick reaches them.
 JOBS: tuple[Job, ...] = (
-    Job(TICK_ROUND, _tick_round, 109, longest=True),
+    Job(TICK_ROUND, _tick_round, 96, longest=True),
+    Job(TICK_ROUND_PARTS, _tick_round_parts, 21),
     Job(PACKET_PATH, _packet_path, 35),
     Job(SESSIONS, _sessions, 36, after=(PACKET_PATH,)),
     Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
@@ -203,5 +214,7 @@ JOBS: tuple[Job, ...] = (
 )
 #: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr, and
 #: the built-in phantoms (the default bone is one). The round tick takes longest; on two
-#: cores the other three follow one another in a second process meanwhile.
-FIRST_START: tuple[str, ...] = (TICK_ROUND, PACKET_PATH, SESSIONS, BUILT_IN_PHANTOMS)
+#: cores the others follow one another in a second process meanwhile, the tick's last parts
+#: first (the tick loads them: they balance the two processes).
+FIRST_START: tuple[str, ...] = (TICK_ROUND, TICK_ROUND_PARTS, PACKET_PATH, SESSIONS,
+                                BUILT_IN_PHANTOMS)
