@@ -209,6 +209,18 @@ def test_a_tool_change_loads_the_other_tick_before_the_burr_changes(tmp_path):
     assert "compiled by the next tick 0" in done.stdout
 
 
+#: The start of a script run in a process of its own: ``compiled`` lists the kernels numba
+#: compiles there.
+_COUNT_COMPILES = textwrap.dedent("""
+    from numba.core import event
+    compiled = []
+    class Count(event.Listener):
+        def on_start(self, e): compiled.append(e.data["dispatcher"].py_func.__qualname__)
+        def on_end(self, e): pass
+    event.register("numba:compile", Count())
+""")
+
+
 def test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_compile_nothing(tmp_path):
     """What ``serve`` compiles before it is ready (the round tick in one process, the packet
     path, the sessions without a tick and the phantoms in another) is all its hot loop's
@@ -224,13 +236,7 @@ def test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_compile_noth
     done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True,
                           text=True, timeout=900)
     assert done.returncode == 0, done.stdout + done.stderr
-    serve_like = textwrap.dedent("""
-        from numba.core import event
-        compiled = []
-        class Count(event.Listener):
-            def on_start(self, e): compiled.append(e.data["dispatcher"].py_func.__qualname__)
-            def on_end(self, e): pass
-        event.register("numba:compile", Count())
+    serve_like = _COUNT_COMPILES + textwrap.dedent("""
         from burrforce.server.bone import phantom
         from burrforce.server.bone.shared import publish, run_directory
         from burrforce.server.hotloop.dispatch import Dispatcher
@@ -249,15 +255,9 @@ def test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_compile_noth
 
 #: The round tick in a process of its own, on the cache ``NUMBA_CACHE_DIR``: which kernels it
 #: compiled, and a hash of its outputs along a groove into the compile's workpiece.
-_ROUND_TICK = textwrap.dedent("""
+_ROUND_TICK = _COUNT_COMPILES + textwrap.dedent("""
     import hashlib
     import numpy as np
-    from numba.core import event
-    compiled = []
-    class Count(event.Listener):
-        def on_start(self, e): compiled.append(e.data["dispatcher"].py_func.__qualname__)
-        def on_end(self, e): pass
-    event.register("numba:compile", Count())
     from burrforce.server.cli.compile_jobs import _shared_workpiece, _tick_round
     from burrforce.server.hotloop.spec import SessionSpec, build_session
     _tick_round()
