@@ -115,6 +115,18 @@ def _swept(api: httpx.Client, sid: int, what: str = "swept") -> np.ndarray:
     return np.load(io.BytesIO(r.content))
 
 
+def _bricks_back_to_the_source(before: np.ndarray, after: np.ndarray) -> int:
+    """Bricks (``bone.bricks.BRICK``³ voxels) that had swept voxels and have none now."""
+    pad = [(0, -n % BRICK) for n in before.shape]
+
+    def per_brick(swept: np.ndarray) -> np.ndarray:
+        a = np.pad(swept, pad)
+        nx, ny, nz = (n // BRICK for n in a.shape)
+        return a.reshape(nx, BRICK, ny, BRICK, nz, BRICK).any(axis=(1, 3, 5))
+
+    return int((per_brick(before) & ~per_brick(after)).sum())
+
+
 def _folder(data: Path, sid: int) -> Path:
     return data / "journal" / "sessions" / str(sid)
 
@@ -259,7 +271,11 @@ def test_a_damaged_carve_log_resumes_with_its_key_and_says_exactly_what_it_lost(
             return
         assert lost_mm3 > 0
         assert recovery["removed_mm3"] == pytest.approx(lost_mm3, abs=1e-9)
-        assert recovery["bricks"] > 0 and recovery["measured"] is True
+        # Bricks none of whose records survived are back to the phantom's unswept bone;
+        # a brick whose latest record was lost but an older one survived holds that older
+        # state: its loss is in removed_mm3, and it is not one of the bricks lost.
+        assert recovery["bricks"] == _bricks_back_to_the_source(journaled["swept"], swept)
+        assert recovery["measured"] is True
         assert f"{lost_mm3:.3f} mm³" in second.banner
         assert "carving and key as they were" not in second.banner
         assert health["status"] == "ok" and health["journal"]["state"] == "ok"
