@@ -105,8 +105,8 @@ SLOW: tuple[str, ...] = (
     "test_first_start.py::test_a_first_serve_compiles_with_progress_then_the_rest_behind_it",
     "test_first_start.py::test_after_the_first_start_jobs_a_hot_loop_and_the_default_bone_"
     "compile_nothing",
-    "test_first_start.py::test_the_round_ticks_parts_compiled_first_elsewhere_are_loaded_and_"
-    "change_nothing",
+    "test_first_start.py::test_the_round_ticks_bone_and_parts_compiled_elsewhere_are_loaded_"
+    "and_change_nothing",
     # 100 000 datagrams; the live server's other tests stay.
     "test_hotloop_live.py::test_fuzz_100k_datagrams_against_the_live_server",
     # The schema fuzzers (schemathesis over every route); the module's token test stays.

@@ -261,7 +261,7 @@ _ROUND_TICK = _COUNT_COMPILES + textwrap.dedent("""
     from burrforce.server.cli.compile_jobs import _shared_workpiece, _tick_round
     from burrforce.server.hotloop.spec import SessionSpec, build_session
     _tick_round()
-    print("compiled", sorted(set(compiled)))
+    print("compiled", compiled)
     digest = hashlib.sha256()
     with _shared_workpiece() as ref:
         engine = build_session(SessionSpec(bone=ref)).engine
@@ -285,13 +285,15 @@ def _round_tick(cache) -> dict[str, str]:
     return dict(line.split(" ", 1) for line in done.stdout.splitlines())
 
 
-def test_the_round_ticks_parts_compiled_first_elsewhere_are_loaded_and_change_nothing(
+def test_the_round_ticks_bone_and_parts_compiled_elsewhere_are_loaded_and_change_nothing(
         tmp_path):
-    """A first start compiles the round tick's last parts in the second process
-    (``bone.tick_parts``): with them in the cache the tick compiles none of them, and its
-    code is the tick's own (a cached kernel keeps the bitcode its caller inlines): the same
-    outputs, to the last bit, as a tick compiled alone."""
-    from burrforce.server.bone.tick_parts import round_tick_parts
+    """A first start splits the round tick's compile between two processes: the tick's job
+    compiles the carve on example values first (``bone.tick_parts``), then the rest, loading
+    what the other job compiled meanwhile — the bone it warms the tick on and the kernels it
+    reaches last. With those in the cache the tick's job compiles none of them again, and
+    the tick's code is its own (a cached kernel keeps the bitcode its caller inlines): the
+    same outputs, to the last bit, as a tick compiled alone."""
+    from burrforce.server.bone.tick_parts import round_tick_first_parts, round_tick_last_parts
     from burrforce.server.cli.compile_jobs import TICK_ROUND_PARTS
 
     parts_first = tmp_path / "parts-first"
@@ -305,9 +307,16 @@ def test_the_round_ticks_parts_compiled_first_elsewhere_are_loaded_and_change_no
     assert done.returncode == 0, done.stdout + done.stderr
     after_parts = _round_tick(parts_first)
     alone = _round_tick(tmp_path / "alone")
-    parts = {kernel.py_func.__qualname__ for kernel, _ in round_tick_parts()}
-    assert parts <= set(eval(alone["compiled"]))  # the tick calls every one of them
-    assert not parts & set(eval(after_parts["compiled"])), after_parts["compiled"]
+    compiled_alone = eval(alone["compiled"])
+    compiled_after = eval(after_parts["compiled"])
+    last = {kernel.py_func.__qualname__ for kernel, _ in round_tick_last_parts()}
+    (first,) = (kernel.py_func.__qualname__ for kernel, _ in round_tick_first_parts())
+    assert last <= set(compiled_alone)  # the tick calls every one of them
+    assert not last & set(compiled_after), compiled_after
+    # The bone's brick counts were compiled with it, not by the tick's job.
+    assert "count_bricks" in compiled_alone and "count_bricks" not in compiled_after
+    # The carve, compiled first for the example's types, is the one the tick calls.
+    assert compiled_alone.count(first) == compiled_after.count(first) == 1
     assert int(alone["cut"]) > 0
     assert after_parts["cut"] == alone["cut"] and after_parts["outputs"] == alone["outputs"]
 

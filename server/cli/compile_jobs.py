@@ -56,18 +56,27 @@ def _tick(params) -> None:
 
 
 def _tick_round() -> None:
-    """The bone tick for the round abrasive burr (the default session's)."""
+    """The bone tick for the round abrasive burr (the default session's): its carve first,
+    which needs no bone, while :data:`TICK_ROUND_PARTS` builds the bone in another process
+    (``bone.tick_parts``)."""
+    from ..bone.tick_parts import compile_parts, round_tick_first_parts
     from ..model.params import CuttingParams
 
+    compile_parts(round_tick_first_parts())
     _tick(CuttingParams())
 
 
 def _tick_round_parts() -> None:
-    """Kernels the round burr's tick reaches last, without a bone (``bone.tick_parts``): in
-    a second process, beside :data:`TICK_ROUND`, which then loads them."""
-    from ..bone.tick_parts import compile_round_tick_parts
+    """Beside :data:`TICK_ROUND`, which loads what this compiles: the bone it warms the tick
+    on (a session on the shared workpiece, without a tick), then the kernels the tick
+    reaches last (``bone.tick_parts``)."""
+    from ..bone.tick_parts import compile_parts, round_tick_last_parts
+    from ..hotloop.spec import SessionSpec, build_session
+    from ..model.params import CuttingParams
 
-    compile_round_tick_parts()
+    with _shared_workpiece() as ref:
+        build_session(SessionSpec(bone=ref, params=CuttingParams()))
+    compile_parts(round_tick_last_parts())
 
 
 def _tick_other_burrs() -> None:
@@ -191,21 +200,22 @@ def _recordings() -> None:
 
 
 TICK_ROUND = "tick, round burr"
-TICK_ROUND_PARTS = "tick, round burr: its last parts"
+TICK_ROUND_PARTS = "tick, round burr: its bone and last parts"
 PACKET_PATH = "packets and haptics"
 SESSIONS = "sessions"
 RECORDINGS = "recordings and reports"
 BUILT_IN_PHANTOMS = "phantoms"
 
 #: In the order a server needs them (a free process takes the first job ready). The round
-#: tick's last parts come second, to be cached before the tick reaches them.
+#: tick's bone and last parts come second, to be cached before the tick needs them; the
+#: phantoms next, so that ``serve`` loads their kernels while the tick still compiles.
 JOBS: tuple[Job, ...] = (
-    Job(TICK_ROUND, _tick_round, 96, longest=True),
-    Job(TICK_ROUND_PARTS, _tick_round_parts, 21),
+    Job(TICK_ROUND, _tick_round, 88, longest=True),
+    Job(TICK_ROUND_PARTS, _tick_round_parts, 29),
+    Job(BUILT_IN_PHANTOMS, _phantoms, 6),
     Job(PACKET_PATH, _packet_path, 35),
     Job(SESSIONS, _sessions, 36, after=(PACKET_PATH,)),
     Job("tick, other burrs", _tick_other_burrs, 40, after=(TICK_ROUND,)),
-    Job(BUILT_IN_PHANTOMS, _phantoms, 7),
     Job("surface meshes", _meshes, 1),
     Job("bone files", _bone_files, 9),
     Job("cutting model", _model, 24),
@@ -214,7 +224,8 @@ JOBS: tuple[Job, ...] = (
 )
 #: What a first ``serve`` compiles before it is ready: a hot loop serving a round burr, and
 #: the built-in phantoms (the default bone is one). The round tick takes longest; on two
-#: cores the others follow one another in a second process meanwhile, the tick's last parts
-#: first (the tick loads them: they balance the two processes).
-FIRST_START: tuple[str, ...] = (TICK_ROUND, TICK_ROUND_PARTS, PACKET_PATH, SESSIONS,
-                                BUILT_IN_PHANTOMS)
+#: cores the others follow one another in a second process meanwhile, in this order (a free
+#: process takes the first one ready): the tick's bone and last parts first (the tick loads
+#: them: they balance the two processes), then as in :data:`JOBS`.
+FIRST_START: tuple[str, ...] = (TICK_ROUND, TICK_ROUND_PARTS, BUILT_IN_PHANTOMS, PACKET_PATH,
+                                SESSIONS)
