@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -248,3 +249,15 @@ def test_serve_counts_ready_from_the_process_start():
                          timeout=60)
     assert out.returncode == 0, out.stderr
     assert 0.4 <= float(out.stdout) < 30.0
+
+
+def test_serve_counts_ready_from_its_own_start_after_a_shell_ran_other_commands_first():
+    """``python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/burrforce serve``:
+    the shell execs into serve, whose process then started with the shell, before the
+    install: "ready in" must not count the install."""
+    code = ("from burrforce.server.cli.invocation import process_age_s; "
+            "print(process_age_s())")
+    script = f"sleep 3 && exec {shlex.quote(sys.executable)} -c {shlex.quote(code)}"
+    out = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert 0.0 <= float(out.stdout) < 2.5  # not the 3 s the shell slept

@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from .. import IMPORTED_MONOTONIC_S
+
 SCRIPT = "burrforce"
 
 
@@ -41,13 +43,24 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+#: A process older than its first import of burrforce by more than this, s, ran something else
+#: before it became this interpreter: a shell running ``a && b && burrforce serve`` (the
+#: README's first command) execs into its last command, so the process started with the
+#: shell, before ``a`` and ``b``.
+EXEC_SLACK_S = 2.0
+
+
 def process_age_s() -> float:
-    """Seconds since this process started (from ``/proc/self/stat`` on Linux, so the
-    interpreter's start-up and imports count; 0 where it cannot tell)."""
+    """Seconds since this command started: since the process started (``/proc/self/stat`` on
+    Linux, so the interpreter's start-up and imports count), unless the process was another
+    program until long after that (``EXEC_SLACK_S``); then, and where /proc cannot tell,
+    since burrforce was first imported."""
+    since_import = max(0.0, time.monotonic() - IMPORTED_MONOTONIC_S)
     try:
         with open("/proc/self/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
         started_s = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22: start time, ticks
-        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - started_s)
+        age = time.clock_gettime(time.CLOCK_BOOTTIME) - started_s
     except (OSError, ValueError, IndexError, AttributeError):
-        return 0.0
+        return since_import
+    return age if since_import <= age <= since_import + EXEC_SLACK_S else since_import
