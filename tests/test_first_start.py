@@ -291,8 +291,8 @@ def test_the_round_ticks_bone_and_parts_compiled_elsewhere_are_loaded_and_change
     compiles the carve on example values first (``bone.tick_parts``), then the rest, loading
     what the other job compiled meanwhile — the bone it warms the tick on and the kernels it
     reaches last. With those in the cache the tick's job compiles none of them again, and
-    the tick's code is its own (a cached kernel keeps the bitcode its caller inlines): the
-    same outputs, to the last bit, as a tick compiled alone."""
+    although a kernel from the cache may stay a call where one compiled alongside would be
+    inlined, the tick gives the same outputs, to the last bit, as a tick compiled alone."""
     from burrforce.server.bone.tick_parts import round_tick_first_parts, round_tick_last_parts
     from burrforce.server.cli.compile_jobs import TICK_ROUND_PARTS
 

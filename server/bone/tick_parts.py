@@ -8,7 +8,7 @@ without a bone, compile the very specializations the tick looks up. A kernel fro
 may stay a call where one compiled in the same process would be inlined, so these are
 kernels the tick calls once a tick (or only at the grid's edges): its outputs are the same to
 the last bit (``tests/test_first_start.py``) and its instruction count the same within noise
-(``benchmarks/tick_profile.py``: 651.7 k per tick either way).
+(``benchmarks/tick_profile.py``).
 
 - :func:`round_tick_first_parts`: what the tick reaches first (the carve). The tick's own
   process compiles it while the other process builds the bone the tick is then warmed on
